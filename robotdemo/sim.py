@@ -1,0 +1,291 @@
+"""The thin adapter between robotdemo and PyBullet: every PyBullet call of the project goes through here.
+
+It turns PyBullet's tuples into named records (:class:`ContactPoint`, :class:`LinkState`), checks that nothing
+diverged (NaN/inf raise :class:`SimulationError`), and validates description files before PyBullet sees them
+(PyBullet's own message for a bad file is ``Cannot load URDF file`` without saying which or why).
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pybullet as p
+
+from robotdemo.errors import AssetError, SimulationError
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Physics settings.
+
+    Attributes:
+        time_step_s: physics step; 1 ms keeps finger contacts and the tactile pad stable.
+        solver_iterations: constraint solver iterations per step (contact-rich sliding needs many).
+        gravity_mps2: gravity along world -z.
+        gui: open PyBullet's own GUI window instead of running headless (DIRECT).
+    """
+
+    time_step_s: float = 1.0 / 1000.0
+    solver_iterations: int = 100
+    gravity_mps2: float = 9.81
+    contact_erp: float = 0.2
+    friction_erp: float = 0.2
+    contact_slop_m: float = 0.0002
+    gui: bool = False
+
+
+@dataclass(frozen=True)
+class ContactPoint:
+    """One contact point of the last step (PyBullet's ``getContactPoints`` record, named).
+
+    Forces are those the solver applied during the last ``step``; directions are unit vectors in the world frame.
+    ``normal_on_b`` points from body B towards body A.
+    """
+
+    body_a: int
+    body_b: int
+    link_a: int
+    link_b: int
+    position_on_a_m: np.ndarray
+    position_on_b_m: np.ndarray
+    normal_on_b: np.ndarray
+    distance_m: float
+    normal_force_n: float
+    lateral_friction1_n: float
+    lateral_friction_dir1: np.ndarray
+    lateral_friction2_n: float
+    lateral_friction_dir2: np.ndarray
+
+    @property
+    def shear_force_n(self) -> np.ndarray:
+        """Friction force vector on body B... as PyBullet reports it: f1 * dir1 + f2 * dir2 (world, N)."""
+        return self.lateral_friction1_n * self.lateral_friction_dir1 + self.lateral_friction2_n * self.lateral_friction_dir2
+
+
+@dataclass(frozen=True)
+class LinkState:
+    """World pose and velocity of a link frame (URDF link frame, not the inertial frame)."""
+
+    position_m: np.ndarray
+    orientation_xyzw: np.ndarray
+    linear_velocity_mps: np.ndarray
+    angular_velocity_radps: np.ndarray
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return np.asarray(p.getMatrixFromQuaternion(self.orientation_xyzw)).reshape(3, 3)
+
+
+@dataclass(frozen=True)
+class JointInfo:
+    index: int
+    name: str
+    kind: int
+    lower_rad: float
+    upper_rad: float
+    effort_nm: float
+    velocity_radps: float
+    link_name: str
+
+
+def validate_urdf(path: str | Path) -> Path:
+    """Check that ``path`` exists and is a well-formed URDF; a one-line :class:`AssetError` names the file if not."""
+    path = Path(path)
+    if not path.is_file():
+        raise AssetError(f"{path}: URDF file not found")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise AssetError(f"{path}: malformed URDF (XML error: {exc})") from None
+    if root.tag != "robot":
+        raise AssetError(f"{path}: malformed URDF (root element is <{root.tag}>, expected <robot>)")
+    links = {el.get("name") for el in root.findall("link")}
+    if not links:
+        raise AssetError(f"{path}: malformed URDF (no <link> elements)")
+    for el in root.findall("joint"):
+        for tag in ("parent", "child"):
+            ref = el.find(tag)
+            if ref is None or ref.get("link") not in links:
+                raise AssetError(f"{path}: malformed URDF (joint {el.get('name')!r} names a missing {tag} link)")
+    return path
+
+
+class Simulator:
+    """One PyBullet physics client. Use as a context manager or call :meth:`close`."""
+
+    def __init__(self, config: SimConfig = SimConfig()) -> None:
+        self.config = config
+        self.client = p.connect(p.GUI if config.gui else p.DIRECT)
+        if self.client < 0:
+            raise SimulationError("could not start PyBullet (p.connect failed)")
+        p.resetSimulation(physicsClientId=self.client)
+        p.setGravity(0, 0, -config.gravity_mps2, physicsClientId=self.client)
+        p.setPhysicsEngineParameter(
+            fixedTimeStep=config.time_step_s, numSolverIterations=config.solver_iterations,
+            numSubSteps=0, deterministicOverlappingPairs=1, contactERP=config.contact_erp,
+            frictionERP=config.friction_erp, contactSlop=config.contact_slop_m, enableConeFriction=1,
+            physicsClientId=self.client)
+        self.time_s = 0.0
+        self.steps = 0
+
+    # -- life cycle -------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        if self.client >= 0 and p.isConnected(self.client):
+            p.disconnect(self.client)
+        self.client = -1
+
+    def __enter__(self) -> "Simulator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- loading ----------------------------------------------------------------------------------------------
+    def load_urdf(self, path: str | Path, position_m: Sequence[float] = (0, 0, 0),
+                  orientation_xyzw: Sequence[float] = (0, 0, 0, 1), fixed_base: bool = False) -> int:
+        path = validate_urdf(path)
+        try:
+            body = p.loadURDF(str(path), basePosition=list(position_m), baseOrientation=list(orientation_xyzw),
+                              useFixedBase=fixed_base, flags=p.URDF_USE_INERTIA_FROM_FILE,
+                              physicsClientId=self.client)
+        except p.error as exc:
+            raise AssetError(f"{path}: PyBullet could not load it ({exc})") from None
+        return body
+
+    def create_primitive(self, shape: str, size_m: Sequence[float], mass_kg: float, position_m: Sequence[float],
+                         orientation_xyzw: Sequence[float], rgba: Sequence[float]) -> int:
+        """Create a rigid ``box`` (full sizes x, y, z) or ``cylinder`` (diameter, diameter, height) body."""
+        if shape == "box":
+            half = [s / 2 for s in size_m]
+            col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=self.client)
+            vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, rgbaColor=list(rgba), physicsClientId=self.client)
+        elif shape == "cylinder":
+            radius, height = size_m[0] / 2, size_m[2]
+            col = p.createCollisionShape(p.GEOM_CYLINDER, radius=radius, height=height, physicsClientId=self.client)
+            vis = p.createVisualShape(p.GEOM_CYLINDER, radius=radius, length=height, rgbaColor=list(rgba),
+                                      physicsClientId=self.client)
+        else:
+            raise ValueError(f"unknown primitive shape {shape!r} (expected 'box' or 'cylinder')")
+        return p.createMultiBody(baseMass=mass_kg, baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
+                                 basePosition=list(position_m), baseOrientation=list(orientation_xyzw),
+                                 physicsClientId=self.client)
+
+    def set_dynamics(self, body: int, link: int = -1, **kwargs: float) -> None:
+        """Forward to ``changeDynamics`` (keyword names as PyBullet's: lateralFriction, contactStiffness, ...)."""
+        p.changeDynamics(body, link, physicsClientId=self.client, **kwargs)
+
+    # -- stepping ---------------------------------------------------------------------------------------------
+    def step(self, n: int = 1) -> None:
+        for _ in range(n):
+            p.stepSimulation(physicsClientId=self.client)
+        self.steps += n
+        self.time_s = self.steps * self.config.time_step_s
+
+    # -- queries ----------------------------------------------------------------------------------------------
+    def joints(self, body: int) -> list[JointInfo]:
+        out = []
+        for j in range(p.getNumJoints(body, physicsClientId=self.client)):
+            info = p.getJointInfo(body, j, physicsClientId=self.client)
+            out.append(JointInfo(index=j, name=info[1].decode(), kind=info[2], lower_rad=info[8], upper_rad=info[9],
+                                 effort_nm=info[10], velocity_radps=info[11], link_name=info[12].decode()))
+        return out
+
+    def joint_positions(self, body: int, joints: Sequence[int]) -> np.ndarray:
+        states = p.getJointStates(body, list(joints), physicsClientId=self.client)
+        q = np.array([s[0] for s in states])
+        self._check_finite(q, f"joint positions of body {body}")
+        return q
+
+    def joint_velocities(self, body: int, joints: Sequence[int]) -> np.ndarray:
+        states = p.getJointStates(body, list(joints), physicsClientId=self.client)
+        return np.array([s[1] for s in states])
+
+    def link_state(self, body: int, link: int) -> LinkState:
+        if link < 0:
+            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
+            lin, ang = p.getBaseVelocity(body, physicsClientId=self.client)
+        else:
+            st = p.getLinkState(body, link, computeLinkVelocity=1, computeForwardKinematics=1,
+                                physicsClientId=self.client)
+            pos, orn, lin, ang = st[4], st[5], st[6], st[7]
+        state = LinkState(np.array(pos), np.array(orn), np.array(lin), np.array(ang))
+        self._check_finite(np.concatenate([state.position_m, state.linear_velocity_mps]), f"state of body {body} link {link}")
+        return state
+
+    def base_pose(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
+        pos = np.array(pos)
+        self._check_finite(pos, f"pose of body {body}")
+        return pos, np.array(orn)
+
+    def contact_points(self, body_a: int, body_b: int | None = None, link_a: int | None = None) -> list[ContactPoint]:
+        """Contact points of the last step between ``body_a`` (optionally one link of it) and ``body_b``."""
+        kwargs = {"bodyA": body_a, "physicsClientId": self.client}
+        if body_b is not None:
+            kwargs["bodyB"] = body_b
+        if link_a is not None:
+            kwargs["linkIndexA"] = link_a
+        points = []
+        for c in p.getContactPoints(**kwargs):
+            cp = ContactPoint(body_a=c[1], body_b=c[2], link_a=c[3], link_b=c[4], position_on_a_m=np.array(c[5]),
+                              position_on_b_m=np.array(c[6]), normal_on_b=np.array(c[7]), distance_m=c[8],
+                              normal_force_n=c[9], lateral_friction1_n=c[10], lateral_friction_dir1=np.array(c[11]),
+                              lateral_friction2_n=c[12], lateral_friction_dir2=np.array(c[13]))
+            if not (math.isfinite(cp.normal_force_n) and math.isfinite(cp.lateral_friction1_n)
+                    and math.isfinite(cp.lateral_friction2_n)):
+                raise SimulationError(
+                    f"simulation diverged: non-finite contact force between bodies {cp.body_a} and {cp.body_b} "
+                    f"at t={self.time_s:.3f} s")
+            points.append(cp)
+        return points
+
+    def all_contact_points(self) -> list[ContactPoint]:
+        return [cp for body in range(p.getNumBodies(physicsClientId=self.client))
+                for cp in self.contact_points(p.getBodyUniqueId(body, physicsClientId=self.client))
+                if cp.body_a < cp.body_b]
+
+    def body_ids(self) -> list[int]:
+        return [p.getBodyUniqueId(i, physicsClientId=self.client) for i in range(p.getNumBodies(physicsClientId=self.client))]
+
+    def check_state_finite(self) -> None:
+        """Raise :class:`SimulationError` if any body's pose or joint state has become NaN or inf."""
+        for body in self.body_ids():
+            self.base_pose(body)
+            n = p.getNumJoints(body, physicsClientId=self.client)
+            if n:
+                self.joint_positions(body, range(n))
+
+    def _check_finite(self, values: np.ndarray, what: str) -> None:
+        if not np.all(np.isfinite(values)):
+            raise SimulationError(f"simulation diverged: {what} became NaN or inf at t={self.time_s:.3f} s")
+
+    # -- control ----------------------------------------------------------------------------------------------
+    def disable_default_motors(self, body: int) -> None:
+        """Every joint starts with a velocity motor; switch them off before torque control."""
+        n = p.getNumJoints(body, physicsClientId=self.client)
+        p.setJointMotorControlArray(body, list(range(n)), p.VELOCITY_CONTROL, forces=[0.0] * n,
+                                    physicsClientId=self.client)
+
+    def position_control(self, body: int, joints: Sequence[int], targets_rad: Sequence[float],
+                         max_forces: Sequence[float], target_velocities: Sequence[float] | None = None,
+                         position_gain: float = 0.3, velocity_gain: float = 1.0) -> None:
+        kwargs = {}
+        if target_velocities is not None:
+            kwargs["targetVelocities"] = list(target_velocities)
+        p.setJointMotorControlArray(body, list(joints), p.POSITION_CONTROL, targetPositions=list(targets_rad),
+                                    forces=list(max_forces), positionGains=[position_gain] * len(joints),
+                                    velocityGains=[velocity_gain] * len(joints), physicsClientId=self.client,
+                                    **kwargs)
+
+    def reset_joints(self, body: int, joints: Sequence[int], positions_rad: Sequence[float]) -> None:
+        """Set joint positions directly (initialisation only, before the run starts)."""
+        for j, q in zip(joints, positions_rad):
+            p.resetJointState(body, j, q, 0.0, physicsClientId=self.client)
+
+    def remove_body(self, body: int) -> None:
+        p.removeBody(body, physicsClientId=self.client)
