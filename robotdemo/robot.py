@@ -89,6 +89,8 @@ class Robot:
         self.arm_joints = [self.joint_info[n].index for n in ARM_JOINTS]
         self.gripper_joints = [self.joint_info[n].index for n in GRIPPER_JOINTS]
         self.arm_efforts = [self.joint_info[n].effort_nm for n in ARM_JOINTS]
+        self.arm_speeds = [self.joint_info[n].velocity_radps for n in ARM_JOINTS]
+        self.gripper_speeds = [self.joint_info[n].velocity_radps for n in GRIPPER_JOINTS]
         self.arm_lower = np.array([self.joint_info[n].lower_rad for n in ARM_JOINTS])
         self.arm_upper = np.array([self.joint_info[n].upper_rad for n in ARM_JOINTS])
         self.tool_link = self.link_index[TOOL_FRAME]
@@ -141,7 +143,7 @@ class Robot:
         """Joint-motor targets for the arm (rad, rad/s), clipped to the joint limits."""
         self.arm_target = np.clip(np.asarray(q, dtype=float), self.arm_lower, self.arm_upper)
         self.sim.position_control(self.body, self.arm_joints, self.arm_target, self.arm_efforts,
-                                  target_velocities=qd, position_gain=self.config.position_gain,
+                                  self.arm_speeds, target_velocities=qd, position_gain=self.config.position_gain,
                                   velocity_gain=self.config.velocity_gain)
 
     def command_gripper(self, posture: GripperPosture, effort_nm: float | None = None) -> None:
@@ -153,5 +155,5 @@ class Robot:
         self.gripper_target = np.asarray(posture.q, dtype=float)
         self.gripper_effort_nm = self.config.grasp_effort_nm if effort_nm is None else effort_nm
         caps = [2.0 * self.gripper_effort_nm] * 2 + [self.gripper_effort_nm] * 4
-        self.sim.position_control(self.body, self.gripper_joints, self.gripper_target, caps,
+        self.sim.position_control(self.body, self.gripper_joints, self.gripper_target, caps, self.gripper_speeds,
                                   position_gain=self.config.gripper_position_gain, velocity_gain=1.0)

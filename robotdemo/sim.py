@@ -272,15 +272,19 @@ class Simulator:
                                     physicsClientId=self.client)
 
     def position_control(self, body: int, joints: Sequence[int], targets_rad: Sequence[float],
-                         max_forces: Sequence[float], target_velocities: Sequence[float] | None = None,
+                         max_forces: Sequence[float], max_velocities: Sequence[float] | None = None,
+                         target_velocities: Sequence[float] | None = None,
                          position_gain: float = 0.3, velocity_gain: float = 1.0) -> None:
-        kwargs = {}
-        if target_velocities is not None:
-            kwargs["targetVelocities"] = list(target_velocities)
-        p.setJointMotorControlArray(body, list(joints), p.POSITION_CONTROL, targetPositions=list(targets_rad),
-                                    forces=list(max_forces), positionGains=[position_gain] * len(joints),
-                                    velocityGains=[velocity_gain] * len(joints), physicsClientId=self.client,
-                                    **kwargs)
+        """Joint position servos: each motor pushes with at most ``max_forces`` (N m) and, like a real servo,
+        moves no faster than ``max_velocities`` (rad/s; the URDF's limits when given)."""
+        for k, j in enumerate(joints):
+            kwargs = {}
+            if max_velocities is not None:
+                kwargs["maxVelocity"] = float(max_velocities[k])
+            p.setJointMotorControl2(body, j, p.POSITION_CONTROL, targetPosition=float(targets_rad[k]),
+                                    targetVelocity=0.0 if target_velocities is None else float(target_velocities[k]),
+                                    force=float(max_forces[k]), positionGain=position_gain,
+                                    velocityGain=velocity_gain, physicsClientId=self.client, **kwargs)
 
     def reset_joints(self, body: int, joints: Sequence[int], positions_rad: Sequence[float]) -> None:
         """Set joint positions directly (initialisation only, before the run starts)."""

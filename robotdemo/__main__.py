@@ -1,0 +1,5 @@
+import sys
+
+from robotdemo.cli import main
+
+sys.exit(main())
