@@ -1,0 +1,239 @@
+"""Baselines of the paper's comparison (LSTM, MTCNN) and the registry of every trainable model.
+
+Both baselines take the same :class:`perception.features.FeatureBatch` and return the same
+:class:`perception.touchformer.ModelOutput` as TouchFormer, with gates = presence (1 or 0) and alphas uniform
+over present modalities, so training and evaluation code treat all models alike.
+
+- LSTM (Ji et al. 2015 style): each modality's sequence is linearly resampled to ``n_steps`` steps over its
+  valid part, missing modalities are zero-filled and flagged by an indicator channel, all concatenated per
+  step and fed to a (bi)LSTM.
+- MTCNN (Wei et al., IEEE TII 2022; no public code, rebuilt from its description): per modality, a stack of
+  dilated temporal convolutions over the energy-spectrum front end (the log band energies / MFCCs and taxel
+  window statistics of :mod:`perception.features`), masked mean+max sequence pooling, then the modalities
+  fused by concatenation with their presence flags and an MLP head.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from perception.features import FeatureBatch
+from perception.streams import MODALITIES
+from perception.touchformer import (ModelOutput, TouchFormer, TouchFormerConfig, TouchFormerFusionConfig,
+                                    TouchFormerMagConfig, uniform_weights)
+
+N_MOD = len(MODALITIES)
+
+
+def resample_valid(x: torch.Tensor, valid: torch.Tensor, n_steps: int) -> torch.Tensor:
+    """Linearly resample each sequence's valid prefix to ``n_steps`` steps.
+
+    Args:
+        x: (B, T, C) padded sequences (padding at the end).
+        valid: (B, T) bool, True on real steps.
+        n_steps: output length.
+
+    Returns:
+        (B, n_steps, C); all zeros for rows without valid steps.
+    """
+    b, t, c = x.shape
+    length = valid.sum(dim=1).to(x.dtype)  # (B,)
+    centres = (torch.arange(n_steps, device=x.device, dtype=x.dtype) + 0.5) / n_steps  # (S,)
+    pos = (centres[None, :] * length[:, None] - 0.5).clamp(min=0.0)  # (B, S)
+    pos = torch.minimum(pos, (length[:, None] - 1.0).clamp(min=0.0))  # (B, S)
+    lo = pos.floor().long().clamp(max=t - 1)  # (B, S)
+    hi = (lo + 1).clamp(max=t - 1)  # (B, S)
+    hi = torch.minimum(hi, (length[:, None] - 1.0).clamp(min=0.0).long())  # (B, S)
+    w = (pos - lo.to(x.dtype)).unsqueeze(-1)  # (B, S, 1)
+    x_lo = torch.gather(x, 1, lo.unsqueeze(-1).expand(b, n_steps, c))  # (B, S, C)
+    x_hi = torch.gather(x, 1, hi.unsqueeze(-1).expand(b, n_steps, c))  # (B, S, C)
+    out = (1.0 - w) * x_lo + w * x_hi  # (B, S, C)
+    return out * (length > 0).to(x.dtype)[:, None, None]  # (B, S, C)
+
+
+def _uniform_output(logits: torch.Tensor, embedding: torch.Tensor, present: torch.Tensor) -> ModelOutput:
+    return ModelOutput(logits=logits, embedding=F.normalize(embedding, dim=-1), gates=present.float(),
+                       alphas=uniform_weights(present))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# LSTM
+
+
+@dataclass(frozen=True)
+class LSTMConfig:
+    """LSTM baseline hyper-parameters.
+
+    Attributes:
+        in_dims: feature channels C_m per modality, :data:`MODALITIES` order.
+        n_classes: number of classes K.
+        n_steps: common number of steps every modality is resampled to.
+        hidden: LSTM hidden size per direction.
+        n_layers: stacked LSTM layers.
+        bidirectional: bidirectional LSTM.
+        dropout: dropout before the heads (and between LSTM layers).
+        emb_dim: embedding size E.
+        cer_lambda: CER weight (0: cross-entropy only, as in the paper's baseline).
+        cer_tau: CER temperature.
+    """
+
+    in_dims: tuple[int, ...]
+    n_classes: int
+    n_steps: int = 32
+    hidden: int = 64
+    n_layers: int = 1
+    bidirectional: bool = True
+    dropout: float = 0.1
+    emb_dim: int = 64
+    cer_lambda: float = 0.0
+    cer_tau: float = 0.2
+
+
+class LSTMClassifier(nn.Module):
+    """Recurrent net over the concatenated, resampled per-modality features plus presence indicators."""
+
+    def __init__(self, config: LSTMConfig) -> None:
+        super().__init__()
+        self.config = config
+        c = config
+        self.lstm = nn.LSTM(sum(c.in_dims) + N_MOD, c.hidden, num_layers=c.n_layers, batch_first=True,
+                            bidirectional=c.bidirectional, dropout=c.dropout if c.n_layers > 1 else 0.0)
+        width = c.hidden * (2 if c.bidirectional else 1)
+        self.drop = nn.Dropout(c.dropout)
+        self.classifier = nn.Linear(width, c.n_classes)
+        self.embedding_head = nn.Linear(width, c.emb_dim)
+
+    def forward(self, batch: FeatureBatch) -> ModelOutput:
+        c = self.config
+        present = batch.present_matrix()  # (B, M)
+        steps = []
+        for i, m in enumerate(MODALITIES):
+            xm = resample_valid(batch.x[m], ~batch.padding[m], c.n_steps)  # (B, S, C_m), 0 if missing
+            steps.append(xm * present[:, i, None, None])
+        flags = present.float()[:, None, :].expand(-1, c.n_steps, -1)  # (B, S, M) indicator channels
+        seq = torch.cat(steps + [flags], dim=-1)  # (B, S, sum C + M)
+        out, _ = self.lstm(seq)  # (B, S, width)
+        h = self.drop(out.mean(dim=1))  # (B, width)
+        return _uniform_output(self.classifier(h), self.embedding_head(h), present)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# MTCNN
+
+
+@dataclass(frozen=True)
+class MTCNNConfig:
+    """MTCNN-style baseline hyper-parameters.
+
+    Attributes:
+        in_dims: feature channels C_m per modality, :data:`MODALITIES` order.
+        n_classes: number of classes K.
+        channels: conv channels per modality.
+        dilations: dilation of each temporal conv layer.
+        kernel_size: temporal kernel (odd).
+        dropout: dropout before the heads.
+        emb_dim: embedding size E.
+        cer_lambda: CER weight (0: cross-entropy only).
+        cer_tau: CER temperature.
+    """
+
+    in_dims: tuple[int, ...]
+    n_classes: int
+    channels: int = 32
+    dilations: tuple[int, ...] = (1, 2, 4)
+    kernel_size: int = 3
+    dropout: float = 0.1
+    emb_dim: int = 64
+    cer_lambda: float = 0.0
+    cer_tau: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be odd, got {self.kernel_size}")
+
+
+class DilatedTemporalEncoder(nn.Module):
+    """1x1 input projection, then residual dilated Conv1D layers; padded steps kept at zero."""
+
+    def __init__(self, in_dim: int, channels: int, dilations: tuple[int, ...], kernel_size: int) -> None:
+        super().__init__()
+        self.inp = nn.Conv1d(in_dim, channels, 1)
+        self.convs = nn.ModuleList([nn.Conv1d(channels, channels, kernel_size, dilation=d,
+                                              padding=d * (kernel_size // 2)) for d in dilations])
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        mask = valid.unsqueeze(1).to(x.dtype)  # (B, 1, T)
+        h = self.inp(x.transpose(1, 2)) * mask  # (B, ch, T)
+        for conv in self.convs:
+            h = (h + F.relu(conv(h))) * mask  # (B, ch, T)
+        return h.transpose(1, 2)  # (B, T, ch)
+
+
+class MTCNNClassifier(nn.Module):
+    """Per-modality dilated temporal CNNs, masked mean+max pooling, concatenation fusion, MLP head."""
+
+    def __init__(self, config: MTCNNConfig) -> None:
+        super().__init__()
+        self.config = config
+        c = config
+        self.encoders = nn.ModuleDict({m: DilatedTemporalEncoder(c.in_dims[i], c.channels, c.dilations,
+                                                                 c.kernel_size) for i, m in enumerate(MODALITIES)})
+        width = N_MOD * 2 * c.channels + N_MOD
+        self.fuse = nn.Sequential(nn.Linear(width, 2 * c.channels), nn.ReLU(), nn.Dropout(c.dropout))
+        self.classifier = nn.Linear(2 * c.channels, c.n_classes)
+        self.embedding_head = nn.Linear(2 * c.channels, c.emb_dim)
+
+    def forward(self, batch: FeatureBatch) -> ModelOutput:
+        present = batch.present_matrix()  # (B, M)
+        pooled = []
+        for i, m in enumerate(MODALITIES):
+            valid = ~batch.padding[m]  # (B, T)
+            h = self.encoders[m](batch.x[m], valid)  # (B, T, ch)
+            n = valid.sum(dim=1, keepdim=True).clamp(min=1).to(h.dtype)  # (B, 1)
+            mean = h.sum(dim=1) / n  # (B, ch)
+            peak = h.masked_fill(~valid.unsqueeze(-1), float("-inf")).amax(dim=1)  # (B, ch)
+            peak = torch.where(valid.any(dim=1, keepdim=True), peak, torch.zeros_like(peak))  # (B, ch)
+            pooled.append(torch.cat([mean, peak], dim=1) * present[:, i, None])  # (B, 2 ch)
+        h = self.fuse(torch.cat(pooled + [present.float()], dim=1))  # (B, 2 ch)
+        return _uniform_output(self.classifier(h), self.embedding_head(h), present)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# registry
+
+MODEL_REGISTRY: dict[str, tuple[type, type[nn.Module]]] = {
+    "touchformer": (TouchFormerConfig, TouchFormer),  # MAG + fusion, trained with CER
+    "touchformer_mag": (TouchFormerMagConfig, TouchFormer),  # ablation: MAG + fusion, no CER
+    "touchformer_fusion": (TouchFormerFusionConfig, TouchFormer),  # ablation: fusion only
+    "lstm": (LSTMConfig, LSTMClassifier),
+    "mtcnn": (MTCNNConfig, MTCNNClassifier),
+}
+"""Model name -> (config class, model class). Every config has ``in_dims``, ``n_classes``, ``cer_lambda``
+and ``cer_tau``; every model's ``forward(batch)`` returns a :class:`ModelOutput`."""
+
+
+def build_model(name: str, in_dims: tuple[int, ...], n_classes: int, **overrides: Any) -> tuple[Any, nn.Module]:
+    """Build a registered model.
+
+    Args:
+        name: a key of :data:`MODEL_REGISTRY`.
+        in_dims: feature channels per modality (``tuple(feature_dims(cfg).values())``).
+        n_classes: number of classes.
+        **overrides: other config fields.
+
+    Returns:
+        (config, model).
+
+    Raises:
+        KeyError: unknown model name (the message lists the known ones).
+    """
+    if name not in MODEL_REGISTRY:
+        raise KeyError(f"unknown model {name!r}; known: {sorted(MODEL_REGISTRY)}")
+    config_cls, model_cls = MODEL_REGISTRY[name]
+    config = config_cls(in_dims=tuple(in_dims), n_classes=n_classes, **overrides)
+    return config, model_cls(config)

@@ -1,0 +1,226 @@
+"""Model checkpoints: a folder with ``model.safetensors`` (the state_dict) and ``config.json``.
+
+``config.json`` holds ``{"format": "robotdemo-checkpoint", "version": 1, "model_name", "model_config",
+"feature_config", "norm_stats", "class_names", "meta"}``; ``meta`` is free-form (training command, seed, ...).
+Nothing is ever unpickled. Every loading problem raises :class:`CheckpointError` whose one-line message
+names the file and the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import safetensors.torch
+import torch
+import torch.nn as nn
+
+from perception.baselines import MODEL_REGISTRY
+from perception.features import FeatureConfig, NormStats, feature_dims
+from perception.streams import MODALITIES
+
+FORMAT_NAME = "robotdemo-checkpoint"
+FORMAT_VERSION = 1
+WEIGHTS_FILE = "model.safetensors"
+CONFIG_FILE = "config.json"
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint cannot be loaded; the message is ``"<file>: <problem>"``."""
+
+    def __init__(self, path: Path, problem: str) -> None:
+        super().__init__(f"{path}: {problem}")
+        self.path = path
+        self.problem = problem
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A loaded checkpoint: the model (in eval mode) and everything needed to feed it.
+
+    Attributes:
+        model_name: key of :data:`perception.baselines.MODEL_REGISTRY`.
+        model_config: the model's config dataclass.
+        model: the model with its weights loaded, in eval mode.
+        feature_config: front-end settings the model was trained with.
+        norm_stats: feature normalisation fitted on the training split.
+        class_names: class index -> name.
+        meta: free-form training record (command, seed, ...).
+    """
+
+    model_name: str
+    model_config: Any
+    model: nn.Module
+    feature_config: FeatureConfig
+    norm_stats: NormStats
+    class_names: tuple[str, ...]
+    meta: Mapping[str, Any]
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """A (nested) config dataclass as plain JSON data."""
+    return dataclasses.asdict(config)
+
+
+def config_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
+    """Rebuild a (nested) frozen config dataclass from JSON data; lists become tuples.
+
+    Raises:
+        ValueError: missing or unknown fields, or values the dataclass rejects.
+    """
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{cls.__name__} must be a JSON object, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{cls.__name__} has no field(s) {unknown}")
+    kwargs = {}
+    for key, value in data.items():
+        hint = hints.get(key)
+        if dataclasses.is_dataclass(hint):
+            kwargs[key] = config_from_dict(hint, value)
+        else:
+            kwargs[key] = tuple(value) if isinstance(value, list) else value
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{cls.__name__}: {exc}") from None
+
+
+def _atomic_write(path: Path, write: typing.Callable[[str], None]) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_checkpoint(directory: str | os.PathLike, model_name: str, model: nn.Module, model_config: Any,
+                    feature_config: FeatureConfig, norm_stats: NormStats, class_names: Sequence[str],
+                    meta: Mapping[str, Any] | None = None) -> Path:
+    """Write ``directory/model.safetensors`` and ``directory/config.json`` (each atomically).
+
+    Args:
+        directory: checkpoint folder (created if needed).
+        model_name: key of :data:`MODEL_REGISTRY`.
+        model: the model; its ``state_dict`` is saved.
+        model_config: the config the model was built from.
+        feature_config: front-end settings.
+        norm_stats: normalisation fitted on the training split.
+        class_names: class index -> name.
+        meta: JSON-serialisable training record (command line, seed, metrics...).
+
+    Returns:
+        The folder written.
+    """
+    if model_name not in MODEL_REGISTRY:
+        raise KeyError(f"unknown model {model_name!r}; known: {sorted(MODEL_REGISTRY)}")
+    config_cls, _ = MODEL_REGISTRY[model_name]
+    if type(model_config) is not config_cls:
+        raise TypeError(f"model {model_name!r} needs a {config_cls.__name__}, got {type(model_config).__name__}")
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    record = {
+        "format": FORMAT_NAME, "version": FORMAT_VERSION, "model_name": model_name,
+        "model_config": config_to_dict(model_config), "feature_config": config_to_dict(feature_config),
+        "norm_stats": norm_stats.to_dict(), "class_names": list(class_names), "meta": dict(meta or {}),
+    }
+    text = json.dumps(record, indent=2, sort_keys=True)
+    _atomic_write(directory / WEIGHTS_FILE, lambda tmp: safetensors.torch.save_file(state, tmp))
+    _atomic_write(directory / CONFIG_FILE, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    return directory
+
+
+def _read_config(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise CheckpointError(path, "config file not found")
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(path, f"not valid JSON ({exc})") from None
+    if not isinstance(record, dict) or record.get("format") != FORMAT_NAME:
+        raise CheckpointError(path, f"not a {FORMAT_NAME} config")
+    if record.get("version") != FORMAT_VERSION:
+        raise CheckpointError(path, f"version {record.get('version')!r}, expected {FORMAT_VERSION}")
+    missing = sorted({"model_name", "model_config", "feature_config", "norm_stats", "class_names"} - set(record))
+    if missing:
+        raise CheckpointError(path, f"missing entries {missing}")
+    return record
+
+
+def _check_state(path: Path, state: Mapping[str, torch.Tensor], expected: Mapping[str, torch.Tensor]) -> None:
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    if missing or unexpected:
+        raise CheckpointError(path, f"state_dict keys do not match the config: missing {missing[:5]}"
+                                    f"{' ...' if len(missing) > 5 else ''}, unexpected {unexpected[:5]}"
+                                    f"{' ...' if len(unexpected) > 5 else ''}")
+    for key, tensor in expected.items():
+        if tuple(state[key].shape) != tuple(tensor.shape):
+            raise CheckpointError(path, f"tensor {key!r} has shape {tuple(state[key].shape)}, "
+                                        f"the config builds {tuple(tensor.shape)}")
+
+
+def load_checkpoint(directory: str | os.PathLike, device: str | torch.device = "cpu") -> Checkpoint:
+    """Load a checkpoint written by :func:`save_checkpoint`.
+
+    Args:
+        directory: checkpoint folder.
+        device: where to put the weights.
+
+    Returns:
+        The :class:`Checkpoint`, model in eval mode.
+
+    Raises:
+        CheckpointError: missing file, corrupt or truncated weights, invalid or inconsistent config,
+            missing/unexpected tensors or wrong shapes.
+    """
+    directory = Path(directory)
+    config_path, weights_path = directory / CONFIG_FILE, directory / WEIGHTS_FILE
+    record = _read_config(config_path)
+    name = record["model_name"]
+    if name not in MODEL_REGISTRY:
+        raise CheckpointError(config_path, f"unknown model {name!r}; known: {sorted(MODEL_REGISTRY)}")
+    config_cls, model_cls = MODEL_REGISTRY[name]
+    try:
+        model_config = config_from_dict(config_cls, record["model_config"])
+        feature_config = config_from_dict(FeatureConfig, record["feature_config"])
+        norm_stats = NormStats.from_dict(record["norm_stats"])
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise CheckpointError(config_path, f"config does not match the code: {exc}") from None
+    dims = feature_dims(feature_config)
+    if tuple(model_config.in_dims) != tuple(dims[m] for m in MODALITIES):
+        raise CheckpointError(config_path, f"model in_dims {tuple(model_config.in_dims)} do not match the "
+                                           f"feature config's {tuple(dims[m] for m in MODALITIES)}")
+    for m in MODALITIES:
+        if len(norm_stats.mean.get(m, ())) != dims[m] or len(norm_stats.std.get(m, ())) != dims[m]:
+            raise CheckpointError(config_path, f"norm_stats for {m} do not have {dims[m]} channels")
+    class_names = tuple(str(c) for c in record["class_names"])
+    if len(class_names) != model_config.n_classes:
+        raise CheckpointError(config_path, f"{len(class_names)} class names for n_classes={model_config.n_classes}")
+
+    if not weights_path.is_file():
+        raise CheckpointError(weights_path, "weights file not found")
+    try:
+        state = safetensors.torch.load_file(str(weights_path), device=str(device))
+    except Exception as exc:  # safetensors raises its own SafetensorError or OSError on corrupt files
+        detail = (str(exc).splitlines() or [""])[0]
+        raise CheckpointError(weights_path, f"corrupt or truncated safetensors file "
+                                            f"({exc.__class__.__name__}: {detail})") from None
+    model = model_cls(model_config)
+    _check_state(weights_path, state, model.state_dict())
+    model.load_state_dict(state, strict=True)
+    model.to(device).eval()
+    return Checkpoint(model_name=name, model_config=model_config, model=model, feature_config=feature_config,
+                      norm_stats=norm_stats, class_names=class_names, meta=record.get("meta", {}))

@@ -1,0 +1,69 @@
+"""Training losses: Cross-Instance Embedding Regularisation (CER, sec. 3.3) and the total loss (sec. 3.4).
+
+The CER term is the paper's supervised contrastive loss, with the sum over positives *inside* the log:
+
+    L_C = -1/|A| sum_{i in A} log( sum_{j != i, y_j = y_i} exp(S_ij / tau) / sum_{j != i} exp(S_ij / tau) ),
+
+S_ij = z_i^T z_j on l2-normalised embeddings. A is the set of anchors with at least one positive in the batch:
+an anchor without a positive contributes 0 and is left out of the mean (the paper's 1/N over all anchors
+would take log 0 for it). With no anchor in A the loss is 0 and still differentiable.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+
+class LossTerms(NamedTuple):
+    """total = ce + cer_lambda * contrastive (scalars)."""
+
+    total: torch.Tensor
+    ce: torch.Tensor
+    contrastive: torch.Tensor
+
+
+def cross_instance_contrastive_loss(embedding: torch.Tensor, labels: torch.Tensor, tau: float) -> torch.Tensor:
+    """CER supervised contrastive loss L_C.
+
+    Args:
+        embedding: (B, E) l2-normalised embeddings.
+        labels: (B,) integer class labels.
+        tau: temperature (> 0).
+
+    Returns:
+        Scalar loss: mean over anchors that have a positive; 0 when none has.
+    """
+    if tau <= 0:
+        raise ValueError(f"temperature tau must be positive, got {tau}")
+    b = embedding.shape[0]
+    sim = embedding @ embedding.T / tau  # (B, B)
+    not_self = ~torch.eye(b, dtype=torch.bool, device=embedding.device)  # (B, B)
+    positive = (labels[:, None] == labels[None, :]) & not_self  # (B, B)
+    has_pos = positive.any(dim=1)  # (B,)
+    # rows without a positive (or with B = 1, without any other sample) get finite dummy logits so that
+    # logsumexp and its gradient stay finite; those rows are masked out of the mean below
+    safe = has_pos[:, None]  # (B, 1)
+    log_num = torch.logsumexp(torch.where(safe, sim.masked_fill(~positive, float("-inf")), 0.0), dim=1)  # (B,)
+    log_den = torch.logsumexp(torch.where(safe, sim.masked_fill(~not_self, float("-inf")), 0.0), dim=1)  # (B,)
+    per_anchor = torch.where(has_pos, log_den - log_num, torch.zeros_like(log_num))  # (B,)
+    return per_anchor.sum() / has_pos.sum().clamp(min=1)
+
+
+def total_loss(logits: torch.Tensor, embedding: torch.Tensor, labels: torch.Tensor, cer_lambda: float,
+               cer_tau: float) -> LossTerms:
+    """L_total = L_cls + lambda * L_C (eq. 14); with cer_lambda = 0 the contrastive term is still reported.
+
+    Args:
+        logits: (B, K) class scores.
+        embedding: (B, E) l2-normalised embeddings.
+        labels: (B,) class indices.
+        cer_lambda: weight lambda of the CER term.
+        cer_tau: CER temperature tau.
+    """
+    ce = F.cross_entropy(logits, labels)
+    contrastive = cross_instance_contrastive_loss(embedding, labels, cer_tau)
+    total = ce + cer_lambda * contrastive if cer_lambda > 0 else ce
+    return LossTerms(total=total, ce=ce, contrastive=contrastive.detach() if cer_lambda <= 0 else contrastive)

@@ -1,0 +1,352 @@
+"""TouchFormer (AAAI 2026), read top to bottom like section 3 of the paper.
+
+1. Temporal Conv1D per modality (kernel k_m) to a common width d, plus positional embedding PE(T_m, d).
+2. Modality-Adaptive Gating (MAG, sec. 3.1): g_m = sigmoid(W2 ReLU(W1 X_m + b1) + b2) on the masked mean of
+   the modality's features; modalities with g_m < gate_th are dropped; alpha_m = softmax over the kept gates;
+   Z_m = alpha_m * (X_m + PE).
+3. Inter-modal Transformer (sec. 3.2): for every (target a, source b) pair, cross-attention
+   Y_{a<-b} = alpha_b * softmax(Q_a K_b^T / sqrt(d_k)) V_b; residual Z~_a = Z_a + sum_b Y_{a<-b}.
+4. Intra-modal Transformer: self-attention layers within each modality.
+5. Masked mean pooling; fused feature Z = concat_m(alpha_m * pooled_m) (eq. 12); a classifier head and an
+   l2-normalised embedding head (for the CER loss, :mod:`perception.losses`).
+
+Choices the paper leaves open, made here:
+
+- W1, W2 of the gate are shared by the four modalities (the paper's equations carry no index m); each
+  modality's own Conv1D makes its features distinguishable to the gate. Sharing also keeps a modality that
+  was gated off for every sample from losing its gradient for good.
+- Missing modalities (stream ``None``) are excluded from the softmax exactly like gated-off ones: alpha = 0.
+- If every present modality of a sample falls below gate_th, the present modality with the largest gate is
+  kept (alpha = 1), so the model always predicts from something. A sample with no modality at all gets
+  all-zero alphas and the classifier sees only its bias.
+- ``use_mag=False`` is the ablation "transformer fusion only": alpha = 1 / (number of present modalities).
+- Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
+  attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
+  with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real
+  steps do not depend on the amount of padding.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from perception.features import FeatureBatch
+from perception.streams import MODALITIES
+
+N_MOD = len(MODALITIES)
+
+
+@dataclass(frozen=True)
+class TouchFormerConfig:
+    """TouchFormer hyper-parameters.
+
+    Attributes:
+        in_dims: feature channels C_m per modality, :data:`MODALITIES` order (see ``features.feature_dims``).
+        n_classes: number of classes K.
+        d_model: common width d.
+        n_heads: attention heads (d_model must be divisible by it).
+        n_layers: intra-modal self-attention layers per modality.
+        kernel_sizes: Conv1D kernel k_m per modality (odd).
+        gate_hidden: hidden width of the MAG gate MLP.
+        gate_th: MAG threshold; a modality with g_m < gate_th is dropped.
+        gate_temperature: alpha = softmax(g / gate_temperature) over kept modalities. The paper's value is 1,
+            which keeps alphas near uniform (gates lie in [0, 1]); a smaller value sharpens them.
+        use_mag: MAG on; False gives uniform alphas over present modalities (ablation "fusion only").
+        emb_dim: embedding size E of the l2-normalised embedding head.
+        dropout: dropout in attention and MLPs.
+        emb_dropout: dropout on the conv embeddings (authors' code: 0.25).
+        cer_lambda: weight lambda of the CER loss in L_cls + lambda L_C (0 turns CER off).
+        cer_tau: CER temperature tau.
+    """
+
+    in_dims: tuple[int, ...]
+    n_classes: int
+    d_model: int = 64
+    n_heads: int = 4
+    n_layers: int = 2
+    kernel_sizes: tuple[int, ...] = (5, 3, 3, 3)
+    gate_hidden: int = 32
+    gate_th: float = 0.1
+    gate_temperature: float = 1.0
+    use_mag: bool = True
+    emb_dim: int = 64
+    dropout: float = 0.1
+    emb_dropout: float = 0.25
+    cer_lambda: float = 0.1
+    cer_tau: float = 0.2
+
+    def __post_init__(self) -> None:
+        if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
+            raise ValueError(f"in_dims and kernel_sizes need {N_MOD} entries ({MODALITIES})")
+        if self.d_model % self.n_heads != 0:
+            raise ValueError(f"d_model {self.d_model} is not divisible by n_heads {self.n_heads}")
+        if any(k % 2 == 0 for k in self.kernel_sizes):
+            raise ValueError(f"kernel sizes must be odd, got {self.kernel_sizes}")
+        if not 0.0 <= self.gate_th < 1.0:
+            raise ValueError(f"gate_th must lie in [0, 1), got {self.gate_th}")
+        if self.gate_temperature <= 0:
+            raise ValueError(f"gate_temperature must be positive, got {self.gate_temperature}")
+
+
+@dataclass(frozen=True)
+class TouchFormerMagConfig(TouchFormerConfig):
+    """Ablation "+MAG": gating on, CER loss off."""
+
+    cer_lambda: float = 0.0
+
+
+@dataclass(frozen=True)
+class TouchFormerFusionConfig(TouchFormerConfig):
+    """Ablation "transformer fusion only": no MAG (uniform alphas), no CER."""
+
+    use_mag: bool = False
+    cer_lambda: float = 0.0
+
+
+class ModelOutput(NamedTuple):
+    """What every material classifier returns.
+
+    Attributes:
+        logits: (B, K) class scores.
+        embedding: (B, E) l2-normalised embedding.
+        gates: (B, 4) MAG gate g_m in [0, 1] (0 for a missing modality), :data:`MODALITIES` order.
+        alphas: (B, 4) modality weights alpha_m; 0 for dropped and missing modalities; rows sum to 1.
+    """
+
+    logits: torch.Tensor
+    embedding: torch.Tensor
+    gates: torch.Tensor
+    alphas: torch.Tensor
+
+
+# ----------------------------------------------------------------------------------------------------------
+# helpers
+
+
+def sinusoidal_pe(length: int, d: int, device: torch.device) -> torch.Tensor:
+    """Sinusoidal positional embedding PE(T, d) (Vaswani et al.), returns (T, d)."""
+    pos = torch.arange(length, device=device, dtype=torch.float32)[:, None]  # (T, 1)
+    freq = torch.exp(torch.arange(0, d, 2, device=device, dtype=torch.float32) * (-math.log(10_000.0) / d))
+    pe = torch.zeros(length, d, device=device)  # (T, d)
+    pe[:, 0::2] = torch.sin(pos * freq)
+    pe[:, 1::2] = torch.cos(pos * freq[: d // 2])
+    return pe
+
+
+def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean over valid time steps; 0 where a row has none. x (B, T, d), valid (B, T) -> (B, d)."""
+    w = valid.to(x.dtype).unsqueeze(-1)  # (B, T, 1)
+    return (x * w).sum(dim=1) / w.sum(dim=1).clamp(min=1.0)  # (B, d)
+
+
+def mag_weights(gates: torch.Tensor, present: torch.Tensor, gate_th: float, temperature: float = 1.0
+                ) -> torch.Tensor:
+    """MAG modality weights: softmax of the gates over kept modalities.
+
+    Args:
+        gates: (B, M) gates g_m in [0, 1].
+        present: (B, M) bool, False for missing modalities.
+        gate_th: modalities with g_m < gate_th are dropped.
+        temperature: softmax temperature (1 in the paper).
+
+    Returns:
+        (B, M) alphas: 0 for dropped/missing modalities, the rest sum to 1. If every present modality is
+        below the threshold, the present one with the largest gate is kept; with none present, all 0.
+    """
+    kept = present & (gates >= gate_th)  # (B, M)
+    best = gates.masked_fill(~present, -1.0).argmax(dim=1)  # (B,)
+    fallback = F.one_hot(best, gates.shape[1]).bool() & present  # (B, M)
+    kept = torch.where(kept.any(dim=1, keepdim=True), kept, fallback)  # (B, M)
+    logits = (gates / temperature).masked_fill(~kept, float("-inf"))  # (B, M)
+    alphas = torch.softmax(logits.masked_fill(~kept.any(dim=1, keepdim=True), 0.0), dim=1)  # (B, M)
+    return alphas * kept  # (B, M)
+
+
+def uniform_weights(present: torch.Tensor) -> torch.Tensor:
+    """Uniform weights over present modalities: (B, M) bool -> (B, M) float, rows sum to 1 (or 0)."""
+    p = present.float()  # (B, M)
+    return p / p.sum(dim=1, keepdim=True).clamp(min=1.0)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# building blocks
+
+
+class ModalityEmbedding(nn.Module):
+    """Temporal Conv1D (kernel k_m, 'same' padding) from C_m feature channels to width d."""
+
+    def __init__(self, in_dim: int, d_model: int, kernel_size: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv1d(in_dim, d_model, kernel_size, padding=kernel_size // 2)
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        x = x * valid.unsqueeze(-1)  # (B, T, C) zeros at padding == the conv's own zero padding
+        h = self.conv(x.transpose(1, 2)).transpose(1, 2)  # (B, T, d)
+        return h * valid.unsqueeze(-1)  # (B, T, d)
+
+
+class ModalityGate(nn.Module):
+    """MAG gate g = sigmoid(W2 ReLU(W1 x + b1) + b2) on a pooled modality feature."""
+
+    def __init__(self, d_model: int, hidden: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(d_model, hidden)
+        self.fc2 = nn.Linear(hidden, 1)
+
+    def forward(self, pooled: torch.Tensor) -> torch.Tensor:
+        h = F.relu(self.fc1(pooled))  # (B, h)
+        return torch.sigmoid(self.fc2(h)).squeeze(-1)  # (B,)
+
+
+class Attention(nn.Module):
+    """Multi-head attention of queries q onto keys/values kv with padded keys masked."""
+
+    def __init__(self, d_model: int, n_heads: int, dropout: float) -> None:
+        super().__init__()
+        self.n_heads = n_heads
+        self.q = nn.Linear(d_model, d_model)
+        self.kv = nn.Linear(d_model, 2 * d_model)
+        self.proj = nn.Linear(d_model, d_model)
+        self.dropout = dropout
+
+    def forward(self, q: torch.Tensor, kv: torch.Tensor, kv_valid: torch.Tensor) -> torch.Tensor:
+        b, tq, d = q.shape
+        tk = kv.shape[1]
+        h = self.n_heads
+        # a row without any valid key attends to its first step (its output is discarded downstream)
+        kv_valid = kv_valid.clone()  # (B, Tk)
+        kv_valid[:, 0] |= ~kv_valid.any(dim=1)
+        qh = self.q(q).view(b, tq, h, d // h).transpose(1, 2)  # (B, h, Tq, d/h)
+        k, v = self.kv(kv).split(d, dim=-1)  # (B, Tk, d) each
+        kh = k.view(b, tk, h, d // h).transpose(1, 2)  # (B, h, Tk, d/h)
+        vh = v.view(b, tk, h, d // h).transpose(1, 2)  # (B, h, Tk, d/h)
+        mask = kv_valid[:, None, None, :]  # (B, 1, 1, Tk) True = attend
+        y = F.scaled_dot_product_attention(qh, kh, vh, attn_mask=mask,
+                                           dropout_p=self.dropout if self.training else 0.0)  # (B, h, Tq, d/h)
+        y = y.transpose(1, 2).reshape(b, tq, d)  # (B, Tq, d)
+        return self.proj(y)  # (B, Tq, d)
+
+
+class MLP(nn.Module):
+    def __init__(self, d_model: int, dropout: float) -> None:
+        super().__init__()
+        self.fc = nn.Linear(d_model, 4 * d_model)
+        self.proj = nn.Linear(4 * d_model, d_model)
+        self.drop = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.drop(self.proj(F.gelu(self.fc(x))))  # (B, T, d)
+
+
+class CrossModalAttention(nn.Module):
+    """Y^_{a<-b} = softmax(Q_a K_b^T / sqrt(d_k)) V_b with pre-LayerNorm on target and source (MulT)."""
+
+    def __init__(self, d_model: int, n_heads: int, dropout: float) -> None:
+        super().__init__()
+        self.ln_target = nn.LayerNorm(d_model)
+        self.ln_source = nn.LayerNorm(d_model)
+        self.attn = Attention(d_model, n_heads, dropout)
+
+    def forward(self, target: torch.Tensor, source: torch.Tensor, source_valid: torch.Tensor) -> torch.Tensor:
+        return self.attn(self.ln_target(target), self.ln_source(source), source_valid)  # (B, Ta, d)
+
+
+class SelfAttentionBlock(nn.Module):
+    """Pre-norm Transformer encoder layer (nanoGPT Block, non-causal, padded keys masked)."""
+
+    def __init__(self, d_model: int, n_heads: int, dropout: float) -> None:
+        super().__init__()
+        self.ln_1 = nn.LayerNorm(d_model)
+        self.attn = Attention(d_model, n_heads, dropout)
+        self.ln_2 = nn.LayerNorm(d_model)
+        self.mlp = MLP(d_model, dropout)
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        h = self.ln_1(x)  # (B, T, d)
+        x = x + self.attn(h, h, valid)  # (B, T, d)
+        return x + self.mlp(self.ln_2(x))  # (B, T, d)
+
+
+class IntraModalTransformer(nn.Module):
+    """n_layers self-attention blocks within one modality, then a final LayerNorm."""
+
+    def __init__(self, d_model: int, n_heads: int, n_layers: int, dropout: float) -> None:
+        super().__init__()
+        self.blocks = nn.ModuleList([SelfAttentionBlock(d_model, n_heads, dropout) for _ in range(n_layers)])
+        self.ln_f = nn.LayerNorm(d_model)
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        for block in self.blocks:
+            x = block(x, valid)  # (B, T, d)
+        return self.ln_f(x)  # (B, T, d)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the model
+
+
+class TouchFormer(nn.Module):
+    """MAG + inter/intra-modal Transformer fusion over four asynchronous feature sequences."""
+
+    def __init__(self, config: TouchFormerConfig) -> None:
+        super().__init__()
+        self.config = config
+        c = config
+        self.embed = nn.ModuleDict({m: ModalityEmbedding(c.in_dims[i], c.d_model, c.kernel_sizes[i])
+                                    for i, m in enumerate(MODALITIES)})
+        self.emb_drop = nn.Dropout(c.emb_dropout)
+        self.gate = ModalityGate(c.d_model, c.gate_hidden)
+        self.cross = nn.ModuleDict({f"{tgt}_from_{src}": CrossModalAttention(c.d_model, c.n_heads, c.dropout)
+                                    for tgt in MODALITIES for src in MODALITIES if src != tgt})
+        self.intra = nn.ModuleDict({m: IntraModalTransformer(c.d_model, c.n_heads, c.n_layers, c.dropout)
+                                    for m in MODALITIES})
+        self.head_drop = nn.Dropout(c.dropout)
+        self.classifier = nn.Linear(N_MOD * c.d_model, c.n_classes)
+        self.embedding_head = nn.Linear(N_MOD * c.d_model, c.emb_dim)
+
+    def forward(self, batch: FeatureBatch) -> ModelOutput:
+        c = self.config
+        valid = {m: ~batch.padding[m] for m in MODALITIES}  # (B, T_m) each
+        present = batch.present_matrix()  # (B, M)
+
+        # 1. temporal convolution to width d
+        x_hat = {m: self.embed[m](batch.x[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
+
+        # 2. modality-adaptive gating
+        pooled_in = torch.stack([masked_mean(x_hat[m], valid[m]) for m in MODALITIES], dim=1)  # (B, M, d)
+        gates = self.gate(pooled_in) * present  # (B, M), 0 for missing
+        if c.use_mag:
+            alphas = mag_weights(gates, present, c.gate_th, c.gate_temperature)  # (B, M)
+        else:
+            alphas = uniform_weights(present)  # (B, M)
+        a = {m: alphas[:, i, None, None] for i, m in enumerate(MODALITIES)}  # (B, 1, 1) each
+        z0 = {}
+        for m in MODALITIES:
+            pe = sinusoidal_pe(x_hat[m].shape[1], c.d_model, x_hat[m].device)  # (T_m, d)
+            z0[m] = a[m] * self.emb_drop(x_hat[m] + pe)  # (B, T_m, d)
+
+        # 3. inter-modal cross-attention, each source's output scaled by its alpha, plus residual
+        z_tilde = {}
+        for tgt in MODALITIES:
+            y = z0[tgt]  # (B, T_tgt, d)
+            for src in MODALITIES:
+                if src != tgt:
+                    y = y + a[src] * self.cross[f"{tgt}_from_{src}"](z0[tgt], z0[src], valid[src])  # (B, T_tgt, d)
+            z_tilde[tgt] = y
+
+        # 4. intra-modal self-attention
+        z_intra = {m: self.intra[m](z_tilde[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
+
+        # 5. pooling, alpha-weighted concat (eq. 12), heads
+        pooled = torch.cat([a[m].squeeze(-1) * masked_mean(z_intra[m], valid[m]) for m in MODALITIES],
+                           dim=1)  # (B, M d)
+        h = self.head_drop(pooled)  # (B, M d)
+        logits = self.classifier(h)  # (B, K)
+        embedding = F.normalize(self.embedding_head(h), dim=-1)  # (B, E)
+        return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)

@@ -1,0 +1,231 @@
+"""TouchFormer: shapes, padding invariance, missing modalities, MAG gating, gradients, learning.
+
+Also home of :func:`synthetic_batches` and :func:`train_and_score`, which the baseline tests import.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from perception.features import FeatureBatch, FeatureConfig, collate, feature_dims, featurize, fit_norm_stats
+from perception.losses import total_loss
+from perception.streams import MODALITIES
+from perception.touchformer import (ModelOutput, TouchFormer, TouchFormerConfig, TouchFormerFusionConfig,
+                                    mag_weights)
+from tests.test_features import labels_of, make_synthetic_strokes
+
+torch.set_num_threads(2)
+
+FEATURES = FeatureConfig()
+DIMS = feature_dims(FEATURES)
+IN_DIMS = tuple(DIMS[m] for m in MODALITIES)
+
+
+def tiny_config(**overrides) -> TouchFormerConfig:
+    base = dict(in_dims=IN_DIMS, n_classes=3, d_model=16, n_heads=2, n_layers=1, gate_hidden=8, emb_dim=8,
+                dropout=0.0, emb_dropout=0.0)
+    base.update(overrides)
+    return TouchFormerConfig(**base)
+
+
+def make_batch(seed: int, n_per_class: int = 2, p_missing: float = 0.0) -> FeatureBatch:
+    recs = make_synthetic_strokes(n_per_class, seed=seed, p_missing=p_missing)
+    feats = [featurize(r, FEATURES) for r in recs]
+    return collate(feats, DIMS, stats=fit_norm_stats(feats, DIMS), labels=labels_of(recs))
+
+
+def synthetic_batches(seed: int, n_train_per_class: int = 20, n_test_per_class: int = 10,
+                      p_missing: float = 0.0) -> tuple[list[FeatureBatch], FeatureBatch]:
+    """Train minibatches (size 15) and one held-out batch; statistics fitted on the train split only."""
+    recs = make_synthetic_strokes(n_train_per_class + n_test_per_class, seed=seed, p_missing=p_missing)
+    n_train = 3 * n_train_per_class
+    feats = [featurize(r, FEATURES) for r in recs]
+    labels = labels_of(recs)
+    stats = fit_norm_stats(feats[:n_train], DIMS)
+    train = [collate(feats[i:i + 15], DIMS, stats=stats, labels=labels[i:i + 15]) for i in range(0, n_train, 15)]
+    test = collate(feats[n_train:], DIMS, stats=stats, labels=labels[n_train:])
+    return train, test
+
+
+def train_and_score(model: torch.nn.Module, train: list[FeatureBatch], test: FeatureBatch, epochs: int,
+                    lr: float = 3e-3, cer_lambda: float = 0.0, cer_tau: float = 0.2) -> float:
+    """Adam on the train batches for ``epochs``; returns held-out accuracy in eval mode."""
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    model.train()
+    for _ in range(epochs):
+        for batch in train:
+            out = model(batch)
+            loss = total_loss(out.logits, out.embedding, batch.labels, cer_lambda, cer_tau).total
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    model.eval()
+    with torch.no_grad():
+        pred = model(test).logits.argmax(dim=1)
+    return float((pred == test.labels).float().mean())
+
+
+@pytest.fixture(scope="module")
+def model() -> TouchFormer:
+    torch.manual_seed(0)
+    return TouchFormer(tiny_config()).eval()
+
+
+# ----------------------------------------------------------------------------------------------------------
+
+
+def test_output_record_shapes(model):
+    batch = make_batch(seed=10)
+    with torch.no_grad():
+        out = model(batch)
+    assert isinstance(out, ModelOutput)
+    assert out.logits.shape == (6, 3) and out.embedding.shape == (6, 8)
+    assert out.gates.shape == (6, 4) and out.alphas.shape == (6, 4)
+    assert torch.allclose(out.embedding.norm(dim=1), torch.ones(6), atol=1e-5)
+    assert torch.allclose(out.alphas.sum(dim=1), torch.ones(6), atol=1e-6)
+    assert torch.all((out.gates >= 0) & (out.gates <= 1))
+
+
+def _pad(batch: FeatureBatch, extra: dict[str, int]) -> FeatureBatch:
+    """The same batch with ``extra[m]`` more padded steps on modality m (random values in the padding)."""
+    gen = torch.Generator().manual_seed(0)
+    x, padding = {}, {}
+    for m in MODALITIES:
+        b, t, c = batch.x[m].shape
+        x[m] = torch.cat([batch.x[m], torch.zeros(b, extra[m], c)], dim=1)
+        padding[m] = torch.cat([batch.padding[m], torch.ones(b, extra[m], dtype=torch.bool)], dim=1)
+        # values hidden under the padding mask must not matter either
+        x[m] = torch.where(padding[m].unsqueeze(-1), torch.randn(x[m].shape, generator=gen), x[m])
+    return FeatureBatch(x=x, padding=padding, present=batch.present, labels=batch.labels)
+
+
+def test_padding_invariance(model):
+    batch = make_batch(seed=11)
+    padded = _pad(batch, {"sound": 7, "normal": 3, "friction": 11, "accel": 5})
+    with torch.no_grad():
+        a, b = model(batch), model(padded)
+    for name in ModelOutput._fields:
+        assert torch.allclose(getattr(a, name), getattr(b, name), atol=1e-5), name
+
+
+def test_single_stroke_equals_its_row_in_a_batch(model):
+    batch = make_batch(seed=12)
+    one = FeatureBatch(x={m: batch.x[m][:1] for m in MODALITIES}, padding={m: batch.padding[m][:1] for m in MODALITIES},
+                       present={m: batch.present[m][:1] for m in MODALITIES})
+    with torch.no_grad():
+        assert torch.allclose(model(one).logits, model(batch).logits[:1], atol=1e-5)
+
+
+def test_missing_modality(model):
+    batch = make_batch(seed=13)
+    present = dict(batch.present)
+    present["friction"] = torch.tensor([False, True, False, True, True, True])
+    padding = dict(batch.padding)
+    padding["friction"] = padding["friction"] | ~present["friction"][:, None]
+    x = dict(batch.x)
+    x["friction"] = x["friction"] * present["friction"][:, None, None]
+    missing = FeatureBatch(x=x, padding=padding, present=present, labels=batch.labels)
+    with torch.no_grad():
+        out = model(missing)
+    j = MODALITIES.index("friction")
+    for field in out:
+        assert torch.isfinite(field).all()
+    assert torch.all(out.alphas[~present["friction"], j] == 0)
+    assert torch.all(out.gates[~present["friction"], j] == 0)
+    assert torch.all(out.alphas[present["friction"], j] > 0)
+    assert torch.allclose(out.alphas.sum(dim=1), torch.ones(6), atol=1e-6)
+
+
+def test_only_one_modality_present(model):
+    batch = make_batch(seed=14)
+    keep = "accel"
+    present = {m: batch.present[m] & (m == keep) for m in MODALITIES}
+    padding = {m: batch.padding[m] | ~present[m][:, None] for m in MODALITIES}
+    x = {m: batch.x[m] * present[m][:, None, None] for m in MODALITIES}
+    with torch.no_grad():
+        out = model(FeatureBatch(x=x, padding=padding, present=present))
+    assert torch.isfinite(out.logits).all()
+    assert torch.allclose(out.alphas[:, MODALITIES.index(keep)], torch.ones(6))
+
+
+def test_mag_weights_threshold_and_softmax():
+    gates = torch.tensor([[0.9, 0.05, 0.6, 0.3],
+                          [0.01, 0.02, 0.03, 0.04],
+                          [0.9, 0.8, 0.7, 0.6]])
+    present = torch.tensor([[True, True, True, True],
+                            [True, True, True, True],
+                            [False, True, True, True]])
+    alphas = mag_weights(gates, present, gate_th=0.1)
+    kept = torch.tensor([0.9, 0.6, 0.3])
+    expected0 = torch.exp(kept) / torch.exp(kept).sum()
+    assert torch.allclose(alphas[0], torch.tensor([expected0[0], 0.0, expected0[1], expected0[2]]))
+    # every gate below the threshold: the best present modality is kept alone
+    assert torch.equal(alphas[1], torch.tensor([0.0, 0.0, 0.0, 1.0]))
+    # a missing modality is excluded even with the largest gate
+    assert alphas[2, 0] == 0 and torch.allclose(alphas[2].sum(), torch.tensor(1.0))
+    # nothing present at all: all zeros, no NaN
+    none = mag_weights(gates[:1], torch.zeros(1, 4, dtype=torch.bool), gate_th=0.1)
+    assert torch.equal(none, torch.zeros(1, 4))
+    # a lower temperature sharpens the weights of the kept modalities
+    sharp = mag_weights(gates, present, gate_th=0.1, temperature=0.1)
+    assert sharp[0, 0] > alphas[0, 0] and torch.allclose(sharp.sum(dim=1), torch.ones(3))
+
+
+def test_gate_th_drops_low_gates_in_the_model():
+    torch.manual_seed(1)
+    batch = make_batch(seed=15)
+    model = TouchFormer(tiny_config(gate_th=0.5)).eval()
+    with torch.no_grad():
+        model.gate.fc2.bias.fill_(-20.0)  # every gate ~ 0 < gate_th
+        low = model(batch)
+        model.gate.fc2.bias.fill_(20.0)  # every gate ~ 1 >= gate_th
+        high = model(batch)
+    assert torch.all((low.alphas == 0).sum(dim=1) == 3)  # only the fallback modality is kept
+    assert torch.allclose(low.alphas.max(dim=1).values, torch.ones(6))
+    assert torch.allclose(high.alphas, torch.full((6, 4), 0.25), atol=1e-6)
+
+
+def test_fusion_only_ablation_has_uniform_alphas():
+    torch.manual_seed(2)
+    config = TouchFormerFusionConfig(**{f.name: getattr(tiny_config(), f.name)
+                                        for f in dataclasses.fields(TouchFormerConfig)
+                                        if f.name not in ("use_mag", "cer_lambda")})
+    assert not config.use_mag and config.cer_lambda == 0.0
+    batch = make_batch(seed=16, p_missing=0.4)
+    with torch.no_grad():
+        out = TouchFormer(config).eval()(batch)
+    present = batch.present_matrix().float()
+    assert torch.allclose(out.alphas, present / present.sum(dim=1, keepdim=True))
+
+
+def test_gradient_reaches_every_part():
+    torch.manual_seed(3)
+    model = TouchFormer(tiny_config())
+    batch = make_batch(seed=17)
+    out = model(batch)
+    total_loss(out.logits, out.embedding, batch.labels, cer_lambda=0.1, cer_tau=0.2).total.backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+    for prefix in ("embed.", "gate.", "cross.", "intra.", "classifier.", "embedding_head."):
+        norm = sum(p.grad.abs().sum() for n, p in model.named_parameters() if n.startswith(prefix))
+        assert norm > 0, prefix
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="divisible"):
+        tiny_config(d_model=15)
+    with pytest.raises(ValueError, match="odd"):
+        tiny_config(kernel_sizes=(4, 3, 3, 3))
+    with pytest.raises(ValueError, match="gate_th"):
+        tiny_config(gate_th=1.5)
+
+
+def test_tiny_touchformer_learns_held_out():
+    torch.manual_seed(4)
+    train, test = synthetic_batches(seed=18, p_missing=0.15)
+    model = TouchFormer(tiny_config())
+    acc = train_and_score(model, train, test, epochs=8, cer_lambda=0.1)
+    assert acc >= 0.8, acc  # chance is 1/3
