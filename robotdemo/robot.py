@@ -23,8 +23,10 @@ PINCH_ZERO_WIDTH_M = 0.0239
 """Distance between the thumb's inner face and the other fingers' faces with the proximal joints at zero."""
 GRASP_CENTER_IN_GRIPPER_M = np.array([0.00665, 0.0, 0.0])
 """Mid-point between the thumb's face and the fingers' faces, gripper_base frame (x, y); z depends on depth."""
-FINGER_REACH_M = 0.05 + 0.05 + 0.05 + 0.02
-"""Palm height + proximal + distal + tip: distance from gripper_base to the fingertip ends at zero opening."""
+PALM_HEIGHT_M = 0.05
+DISTAL_AND_TIP_M = 0.07
+"""Palm height, and distal segment + tip: with the proximal joint at a, the fingertip ends lie
+PALM_HEIGHT_M + PROXIMAL_LENGTH_M cos(a) + DISTAL_AND_TIP_M from gripper_base along its z axis."""
 MAX_GRASP_WIDTH_M = 0.085
 
 
@@ -60,7 +62,7 @@ class GripperPosture:
 
 @dataclass(frozen=True)
 class RobotConfig:
-    position_gain: float = 0.1
+    position_gain: float = 0.3
     velocity_gain: float = 1.0
     gripper_position_gain: float = 0.05
     grasp_effort_nm: float = 1.5
@@ -157,3 +159,13 @@ class Robot:
         caps = [2.0 * self.gripper_effort_nm] * 2 + [self.gripper_effort_nm] * 4
         self.sim.position_control(self.body, self.gripper_joints, self.gripper_target, caps, self.gripper_speeds,
                                   position_gain=self.config.gripper_position_gain, velocity_gain=1.0)
+
+
+def hand_position_for_grasp(center_xy_m: Sequence[float], tip_height_m: float, opening_rad: float,
+                            hand_rotation: np.ndarray) -> np.ndarray:
+    """World position of ``gripper_base`` (hand pointing down) that puts the grasp centre over ``center_xy_m``
+    with the fingertip ends at height ``tip_height_m`` (world z) for proximal joints at ``opening_rad``."""
+    reach = PALM_HEIGHT_M + PROXIMAL_LENGTH_M * np.cos(opening_rad) + DISTAL_AND_TIP_M
+    position = np.array([center_xy_m[0], center_xy_m[1], tip_height_m + reach])
+    position[:2] -= (hand_rotation @ GRASP_CENTER_IN_GRIPPER_M)[:2]
+    return position

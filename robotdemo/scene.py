@@ -53,6 +53,8 @@ class SceneConfig:
         categories: restrict materials to these categories (``None``: all seven).
         object_region_m: (x_min, x_max, y_min, y_max) of object centres, world frame.
         min_gap_m: clearance between the footprints of two objects.
+        max_reach_m: largest horizontal distance of an object's centre from the robot base (the pad, pointing
+            down, reaches about 0.40 m at 0.12 m above the table; the margin leaves room for the stroke).
     """
 
     n_objects: int = 6
@@ -62,11 +64,13 @@ class SceneConfig:
     table_height_m: float = 0.70
     robot_base_xy_m: tuple[float, float] = (-0.45, 0.0)
     robot_yaw_rad: float = math.pi
-    object_region_m: tuple[float, float, float, float] = (-0.27, -0.03, -0.17, 0.17)
+    object_region_m: tuple[float, float, float, float] = (-0.29, -0.10, -0.17, 0.17)
+    max_reach_m: float = 0.36
     min_gap_m: float = 0.03
     zone_half_size_m: float = 0.11
     noncombustible_zone_xy_m: tuple[float, float] = (-0.22, 0.35)
     combustible_zone_xy_m: tuple[float, float] = (-0.22, -0.35)
+    table_friction: float = 1.5
     settle_s: float = 0.3
     sim: SimConfig = field(default_factory=SimConfig)
 
@@ -150,6 +154,8 @@ def plan_objects(config: SceneConfig, catalogue: MaterialCatalogue, rng: np.rand
         for spec in specs:
             for _attempt in range(100):
                 xy = (float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1)))
+                if math.dist(xy, config.robot_base_xy_m) > config.max_reach_m:
+                    continue
                 if all(math.dist(xy, o.xy_m) >= spec.footprint_radius_m + o.footprint_radius_m + config.min_gap_m
                        for o in placed):
                     placed.append(replace(spec, xy_m=xy))
@@ -172,6 +178,8 @@ class Scene:
         top = config.table_height_m
         self.floor = self.sim.load_urdf(urdf_path(FLOOR_URDF), fixed_base=True)
         self.table = self.sim.load_urdf(urdf_path(TABLE_URDF), fixed_base=True)
+        # An anti-slip mat on the table top: objects stay put while the pad drags across them.
+        self.sim.set_dynamics(self.table, -1, lateralFriction=config.table_friction)
         self.zones = (
             Zone("noncombustible", False, config.noncombustible_zone_xy_m, config.zone_half_size_m),
             Zone("combustible", True, config.combustible_zone_xy_m, config.zone_half_size_m),

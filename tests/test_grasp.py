@@ -1,0 +1,73 @@
+"""The gripper closes on a block resting on the table and lifts it 10 cm by friction alone."""
+
+import numpy as np
+import pybullet as p
+import pytest
+
+from robotdemo.assets import FLOOR_URDF, TABLE_URDF, urdf_path
+from robotdemo.motion import DOWN, ArmMotion, hold, run_to_completion
+from robotdemo.robot import PINCH_ZERO_WIDTH_M, GripperPosture, Robot, hand_position_for_grasp
+from robotdemo.sim import Simulator
+
+TABLE_Z = 0.70
+
+
+def _world_with_block(size_m, density_kg_m3=700.0):
+    sim = Simulator()
+    sim.load_urdf(urdf_path(FLOOR_URDF), fixed_base=True)
+    sim.load_urdf(urdf_path(TABLE_URDF), fixed_base=True)
+    robot = Robot(sim, (-0.45, 0.0, TABLE_Z), np.pi)
+    block = sim.create_primitive("box", (size_m,) * 3, density_kg_m3 * size_m**3, (-0.2, 0.05, TABLE_Z + size_m / 2),
+                                 (0, 0, 0, 1), (0.6, 0.4, 0.2, 1))
+    sim.set_dynamics(block, lateralFriction=0.6, contactStiffness=3e4, contactDamping=200)
+    sim.step(100)
+    return sim, robot, block
+
+
+@pytest.mark.parametrize("size_m", [0.040, 0.055, 0.070])
+def test_lifts_block_by_friction(size_m):
+    sim, robot, block = _world_with_block(size_m)
+    with sim:
+        motion = ArmMotion(robot)
+        n_constraints_before = p.getNumConstraints(physicsClientId=sim.client)
+        start, _ = sim.base_pose(block)
+        opened = GripperPosture.pinch_width(size_m + 0.024)
+        robot.command_gripper(opened)
+        opening = opened.q[0]
+        above = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.08, opening, DOWN))
+        at = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.01, opening, DOWN), q=above.q)
+        assert above.success and at.success
+        run_to_completion(motion.plan_path([above.q, at.q]))
+        robot.command_gripper(GripperPosture.pinch_width(size_m - 0.006))
+        hold(robot, 0.8)
+        assert len(robot.finger_contacts(block)) >= 2
+        lifted = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.115, opening, DOWN), q=at.q)
+        move = motion.plan_path([lifted.q])
+        run_to_completion(move)
+        hold(robot, 0.5)
+        end, _ = sim.base_pose(block)
+        assert end[2] - start[2] >= 0.10, f"block rose {1000 * (end[2] - start[2]):.1f} mm"
+        assert np.linalg.norm(end[:2] - start[:2]) < 0.01  # closing did not shove it aside
+        # held by friction alone: no constraint was created, only finger contacts carry it
+        assert p.getNumConstraints(physicsClientId=sim.client) == n_constraints_before
+        assert not sim.contact_points(block, sim.body_ids()[1])  # off the table
+        assert max(move.tracking_errors_rad) < 0.01
+
+
+def test_pinch_width_matches_finger_geometry():
+    """The inner faces of the thumb tip and of the finger tips stand the requested width apart."""
+    sim, robot, block = _world_with_block(0.05)
+    with sim:
+        sim.remove_body(block)
+        for width in (0.04, 0.055, 0.07):
+            robot.command_gripper(GripperPosture.pinch_width(width))
+            hold(robot, 0.6)
+            faces = []
+            for finger in range(3):
+                state = sim.link_state(robot.body, robot.link_index[f"finger{finger}_tip"])
+                faces.append(state.position_m + state.rotation @ np.array([0.008, 0.0, 0.01]))  # inner face centre
+            closing = sim.link_state(robot.body, robot.link_index["finger0_tip"]).rotation[:, 0]
+            for finger in (1, 2):
+                assert abs(float(closing @ (faces[finger] - faces[0]))) == pytest.approx(width, abs=0.0015)
+        with pytest.raises(ValueError, match="outside what the gripper can open"):
+            GripperPosture.pinch_width(0.2)

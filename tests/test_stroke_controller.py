@@ -1,0 +1,142 @@
+"""Stroke controller against a simulated spring surface (F = k * max(0, penetration)) with first-order lags."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from controllers.stroke import StrokeCommand, StrokeConfig, StrokeController, StrokePhase
+
+DT_S = 1.0 / 240.0
+START_M = (0.35, 0.05, 0.10)
+
+
+@dataclass
+class SpringSurface:
+    """Plane z = height_m + tilt * (x - x0) of stiffness k; the tool tracks the command with a first-order lag
+    (``tool_lag_s``, the arm's position loop) and the sensor reading lags the true force (``sensor_lag_s``)."""
+
+    stiffness_n_per_m: float
+    height_m: float = START_M[2]
+    tilt: float = 0.0
+    tool_lag_s: float = 0.01
+    sensor_lag_s: float = 0.01
+
+    def __post_init__(self) -> None:
+        self.measured_n = 0.0
+
+    def step(self, tool_m: np.ndarray, command: StrokeCommand) -> tuple[np.ndarray, float]:
+        tool_m = tool_m + (command.position_m - tool_m) * min(1.0, DT_S / self.tool_lag_s)
+        surface_z = self.height_m + self.tilt * (tool_m[0] - START_M[0])
+        true_n = self.stiffness_n_per_m * max(0.0, surface_z - tool_m[2])
+        self.measured_n += (true_n - self.measured_n) * min(1.0, DT_S / self.sensor_lag_s)
+        return tool_m, self.measured_n
+
+
+def run_stroke(config: StrokeConfig, surface: SpringSurface, max_time_s: float = 20.0):
+    tool = np.array(config.start_point_m) + np.array([0.0, 0.0, 0.03])
+    controller = StrokeController(config, tool)
+    log, force = [], 0.0
+    for _ in range(int(max_time_s / DT_S)):
+        command = controller.step(force, DT_S)
+        tool, force = surface.step(tool, command)
+        log.append((command, force, tool.copy()))
+        if command.done or command.failed:
+            break
+    return log
+
+
+@pytest.mark.parametrize("stiffness_n_per_m", [2e3, 1e5], ids=["soft", "hard"])
+@pytest.mark.parametrize("target_force_n, speed_mps, length_m",
+                         [(0.5, 0.05, 0.02), (2.0, 0.02, 0.04), (5.0, 0.005, 0.06)])
+def test_stroke_holds_force_and_slides_at_speed(stiffness_n_per_m, target_force_n, speed_mps, length_m):
+    config = StrokeConfig(target_force_n=target_force_n, speed_mps=speed_mps, length_m=length_m,
+                          direction_rad=0.7, start_point_m=START_M)
+    log = run_stroke(config, SpringSurface(stiffness_n_per_m))
+    commands = [c for c, _, _ in log]
+    assert commands[-1].done, commands[-1].failure_reason
+    phases = [c.phase for c in commands]
+    assert phases.index(StrokePhase.PRESS) < phases.index(StrokePhase.SETTLE) < phases.index(StrokePhase.SLIDE) \
+        < phases.index(StrokePhase.LIFT) < phases.index(StrokePhase.DONE)
+    forces = np.array([f for _, f, _ in log])
+    assert np.max(forces[[p in (StrokePhase.PRESS, StrokePhase.SETTLE) for p in phases]]) >= 0.9 * target_force_n
+
+    sliding = [i for i, p in enumerate(phases) if p is StrokePhase.SLIDE]
+    assert np.all(np.abs(forces[sliding] - target_force_n) <= 0.2 * target_force_n)
+
+    # Distance and speed of the actual (lagging) tool along the slide direction.
+    direction = config.slide_direction()
+    tools = np.array([t for _, _, t in log])
+    along = tools @ direction
+    slid = along[sliding[-1] + 1] - along[sliding[0] - 1]
+    assert slid == pytest.approx(length_m, rel=0.02)
+    speed = np.diff(along[sliding]) / DT_S
+    assert np.max(speed) == pytest.approx(speed_mps, rel=0.1)
+    assert np.median(speed[speed > 0.5 * speed_mps]) == pytest.approx(speed_mps, rel=0.1)
+    assert abs(np.diff(tools[sliding] @ config.normal()).max()) < 1e-3  # no jumps along the normal
+
+    # Held orientation: pad z against the surface normal; lifted clear at the end.
+    np.testing.assert_allclose(commands[-1].rotation[:, 2], -config.normal(), atol=1e-12)
+    assert tools[-1][2] > START_M[2] + 0.5 * config.approach_height_m
+    assert forces[-1] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_force_tracks_a_slightly_tilted_soft_surface():
+    config = StrokeConfig(target_force_n=2.0, speed_mps=0.02, length_m=0.05, start_point_m=START_M)
+    log = run_stroke(config, SpringSurface(2e3, tilt=0.02))
+    assert log[-1][0].done
+    forces = np.array([f for c, f, _ in log if c.phase is StrokePhase.SLIDE])
+    assert np.all(np.abs(forces - 2.0) <= 0.2 * 2.0)
+
+
+@pytest.mark.parametrize("offset_m", [0.004, -0.006, 0.025])
+def test_surface_away_from_where_expected(offset_m):
+    config = StrokeConfig(target_force_n=1.0, start_point_m=START_M)
+    log = run_stroke(config, SpringSurface(1e4, height_m=START_M[2] + offset_m))
+    assert log[-1][0].done, log[-1][0].failure_reason
+
+
+def test_missing_surface_fails_with_a_reason():
+    config = StrokeConfig(start_point_m=START_M)
+    log = run_stroke(config, SpringSurface(1e5, height_m=START_M[2] - 0.1))
+    last = log[-1][0]
+    assert last.failed and last.phase is StrokePhase.FAILED
+    assert "max_press_depth_m" in last.failure_reason
+    assert last.normal_offset_m >= -config.max_press_depth_m - 1e-3
+
+
+def test_non_finite_force_and_overload_fail():
+    config = StrokeConfig(start_point_m=START_M)
+    controller = StrokeController(config, np.array(START_M) + [0, 0, 0.02])
+    controller.step(0.0, DT_S)
+    command = controller.step(float("nan"), DT_S)
+    assert command.failed and "non-finite" in command.failure_reason
+    # FAILED holds the last pose.
+    again = controller.step(0.0, DT_S)
+    np.testing.assert_array_equal(again.position_m, command.position_m)
+    controller.reset(np.array(START_M) + [0, 0, 0.02])
+    command = controller.step(config.max_force_n + 1.0, DT_S)
+    assert command.failed and "max_force_n" in command.failure_reason
+
+
+def test_time_budget():
+    config = StrokeConfig(start_point_m=START_M, time_budget_s=1.0)
+    log = run_stroke(config, SpringSurface(2e3))
+    assert log[-1][0].failed and "time budget" in log[-1][0].failure_reason
+
+
+@pytest.mark.parametrize("field, value", [("target_force_n", 6.0), ("target_force_n", 0.2), ("speed_mps", 0.1),
+                                          ("length_m", 0.01), ("approach_height_m", 0.0),
+                                          ("surface_normal", (0.0, 0.0, 0.0))])
+def test_config_is_validated(field, value):
+    with pytest.raises(ValueError, match=field):
+        StrokeConfig(**{field: value})
+
+
+def test_direction_lies_in_the_surface_plane():
+    config = StrokeConfig(surface_normal=(0.0, 1.0, 1.0), direction_rad=1.1)
+    d, n = config.slide_direction(), config.normal()
+    assert abs(d @ n) < 1e-12 and np.linalg.norm(d) == pytest.approx(1.0)
+    R = config.rotation()
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)

@@ -1,0 +1,55 @@
+"""Force-regulated strokes executed in PyBullet through the joint motors (URDF efforts)."""
+
+import numpy as np
+import pytest
+
+from controllers.stroke import StrokeConfig, StrokePhase
+from robotdemo.motion import ArmMotion
+from robotdemo.scene import Scene, SceneConfig
+from robotdemo.stroking import cruise_speed_mps, move_pad_above, run_stroke, top_surface_point
+
+# (category, seed, target force N): rubber is the soft surface (contact stiffness ~5e4 N/m), cast iron and
+# pine the hard ones (~3e5 N/m, the top of what the simulation takes).
+CASES = [("rubber", 1, 1.0), ("metal", 1, 4.0), ("wood", 0, 2.0)]
+
+
+@pytest.mark.parametrize("category,seed,force_n", CASES)
+def test_press_holds_force_and_slide_covers_distance_at_speed(category, seed, force_n):
+    with Scene(SceneConfig(n_objects=1, seed=seed, categories=(category,), shapes=("box",))) as scene:
+        obj = scene.objects[0]
+        motion = ArmMotion(scene.robot)
+        config = StrokeConfig(target_force_n=force_n, speed_mps=0.02, length_m=0.03, direction_rad=0.0,
+                              start_point_m=tuple(top_surface_point(scene, obj, (-0.015, 0.0))))
+        move_pad_above(scene, motion, config)
+        result = run_stroke(scene, motion, obj, config)
+        assert result.success, result.failure_reason
+        sliding = np.array([phase is StrokePhase.SLIDE for phase in result.phase_log])
+        force = result.force_log_n[sliding]
+        settled = force[int(0.1 / motion.config.control_period_s):]
+        assert np.all(np.abs(settled - force_n) <= 0.2 * force_n), (settled.min(), settled.max())
+        distance = np.linalg.norm(result.slide_end_m - result.slide_start_m)
+        assert distance == pytest.approx(config.length_m, rel=0.1)
+        assert cruise_speed_mps(result, motion.config.control_period_s) == pytest.approx(config.speed_mps, rel=0.1)
+        assert np.median(result.tracking_error_m) < 0.5e-3
+        # the object stayed put: friction on the anti-slip table held it while the pad dragged across
+        assert np.linalg.norm(scene.object_pose(obj)[0][:2] - np.array(obj.spec.xy_m)) < 0.003
+
+
+def test_normal_force_rises_with_pressing():
+    """Deeper commanded press, larger contact force (monotone), on a soft block (felt, ~1e4 N/m)."""
+    with Scene(SceneConfig(n_objects=1, seed=0, categories=("textiles",), shapes=("box",))) as scene:
+        obj = scene.objects[0]
+        motion = ArmMotion(scene.robot)
+        top = top_surface_point(scene, obj)
+        config = StrokeConfig(start_point_m=tuple(top))
+        move_pad_above(scene, motion, config)
+        forces = []
+        q = scene.robot.arm_q()
+        for depth_mm in (-0.5, 0.3, 0.4, 0.5, 0.6):  # the arm sits ~0.2 mm high under load
+            sol = motion.pad_ik.solve_local(motion.to_base(top - np.array([0, 0, depth_mm / 1000]), config.rotation()), q)
+            q = sol.q
+            scene.robot.command_arm(q)
+            scene.sim.step(400)
+            forces.append(sum(c.normal_force_n for c in scene.robot.pad_contacts(obj.body)))
+        assert forces[0] == 0.0
+        assert forces[1] > 0 and all(b > a for a, b in zip(forces[1:], forces[2:])), forces
