@@ -1,0 +1,64 @@
+"""Individual sensor models: surface texture, taxel spread and readout, resampling, sound modes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from perception.contact_trace import synthetic_press_slide_trace
+from perception.materials import default_catalogue, nominal_sample
+from perception.sensors.resample import sensor_samples
+from perception.sensors.sound import object_modes
+from perception.sensors.taxels import TaxelArrayConfig, taxel_forces, uskin_readout
+from perception.sensors.texture import make_surface_texture
+
+
+def test_texture_rms_matches_material_and_is_seeded():
+    sample = nominal_sample(default_catalogue().instance("sandstone"))
+    texture = make_surface_texture(sample, (0.1, 0.06, 0.03), seed=11)
+    xy = np.random.default_rng(0).uniform(-0.05, 0.05, (20_000, 2))
+    full, smooth = texture.sample(xy)
+    assert np.std(full) == pytest.approx(sample.roughness_rms_m, rel=0.25)
+    assert np.std(smooth) < np.std(full)
+    again, _ = make_surface_texture(sample, (0.1, 0.06, 0.03), seed=11).sample(xy)
+    np.testing.assert_array_equal(full, again)
+
+
+def test_centred_contact_is_fully_sensed_and_readout_recovers_force():
+    cfg = TaxelArrayConfig()
+    trace = synthetic_press_slide_trace(friction_coefficient=0.5, press_force_n=2.0, slide_s=0.2)
+    forces = taxel_forces(trace, cfg)  # (T, 16, 3)
+    steady = forces[int(0.35 * trace.rate_hz)]
+    assert steady[:, 2].sum() == pytest.approx(2.0, rel=1e-3)
+    ideal = dataclasses.replace(cfg, gain_spread=0.0, neighbour_crosstalk=0.0, axis_crosstalk_spread=0.0,
+                                noise_counts=0.0, drift_counts_per_s=0.0, drift_walk_counts_per_sqrt_s=0.0)
+    reported = uskin_readout(np.repeat(steady[None], 20, axis=0), np.random.default_rng(0), ideal)
+    np.testing.assert_allclose(reported[:, :, 2].sum(axis=1), 2.0, atol=0.01)  # quantisation only
+
+
+def test_taxel_saturates_near_overload():
+    cfg = dataclasses.replace(TaxelArrayConfig(), neighbour_crosstalk=0.0, noise_counts=0.0)
+    forces = np.zeros((5, 16, 3))
+    forces[:, 5, 2] = [1.0, 3.0, 6.0, 12.0, 24.0]
+    reported = uskin_readout(forces, np.random.default_rng(0), cfg)[:, 5, 2]
+    assert np.all(np.diff(reported) >= -0.05)
+    assert reported[-1] < 3.6  # overload: the taxel stops following the force
+
+
+def test_sensor_samples_apply_clock_offset():
+    rate = 1000.0
+    t = np.arange(2000) / rate
+    ramp = t[:, None].copy()
+    out = sensor_samples(ramp, rate, 100.0, t0_s=0.025, duration_s=2.0)
+    times = 0.025 + np.arange(out.shape[0]) / 100.0
+    np.testing.assert_allclose(out[5:-5, 0], times[5:-5], atol=2e-3)
+
+
+def test_small_steel_cube_has_no_audible_modes_but_a_plate_does():
+    steel = nominal_sample(default_catalogue().instance("steel"))
+    assert object_modes(steel, (0.05, 0.05, 0.05)) == ()
+    modes = object_modes(steel, (0.25, 0.15, 0.005))
+    assert modes and modes[0].frequency_hz < 2000.0
+    assert all(a.frequency_hz <= b.frequency_hz for a, b in zip(modes, modes[1:]))
