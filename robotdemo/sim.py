@@ -26,12 +26,15 @@ class SimConfig:
     Attributes:
         time_step_s: physics step; 1 ms keeps finger contacts and the tactile pad stable.
         solver_iterations: constraint solver iterations per step (contact-rich sliding needs many).
+        solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
+            default 1e-7; at 1e-5 and above the force loop on a hard block no longer settles within +-10 %).
         gravity_mps2: gravity along world -z.
         gui: open PyBullet's own GUI window instead of running headless (DIRECT).
     """
 
     time_step_s: float = 1.0 / 1000.0
     solver_iterations: int = 100
+    solver_residual_threshold: float = 1e-7
     gravity_mps2: float = 9.81
     contact_erp: float = 0.2
     friction_erp: float = 0.2
@@ -63,7 +66,8 @@ class ContactPoint:
 
     @property
     def shear_force_n(self) -> np.ndarray:
-        """Friction force vector on body B... as PyBullet reports it: f1 * dir1 + f2 * dir2 (world, N)."""
+        """Friction force vector f1 * dir1 + f2 * dir2 (world, N): the friction acting on body A (it opposes A's
+        sliding relative to B; checked in tests/test_stroking.py)."""
         return self.lateral_friction1_n * self.lateral_friction_dir1 + self.lateral_friction2_n * self.lateral_friction_dir2
 
 
@@ -127,7 +131,7 @@ class Simulator:
         p.setGravity(0, 0, -config.gravity_mps2, physicsClientId=self.client)
         p.setPhysicsEngineParameter(
             fixedTimeStep=config.time_step_s, numSolverIterations=config.solver_iterations,
-            numSubSteps=0, deterministicOverlappingPairs=1, contactERP=config.contact_erp,
+            numSubSteps=0, deterministicOverlappingPairs=1, solverResidualThreshold=config.solver_residual_threshold, contactERP=config.contact_erp,
             frictionERP=config.friction_erp, contactSlop=config.contact_slop_m, enableConeFriction=1,
             physicsClientId=self.client)
         self.time_s = 0.0

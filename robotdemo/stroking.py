@@ -103,72 +103,111 @@ def move_pad_above(scene: Scene, motion: ArmMotion, config: StrokeConfig) -> np.
     return hover
 
 
+class StrokeExecution:
+    """One stroke on ``obj``, advanced one control tick per :meth:`step` (the pad must already hover at the
+    start, see :func:`move_pad_above`). :meth:`result` gives the :class:`StrokeResult` once :attr:`finished`."""
+
+    def __init__(self, scene: Scene, motion: ArmMotion, obj: SceneObject, config: StrokeConfig,
+                 max_time_s: float = 20.0) -> None:
+        self.scene, self.motion, self.obj, self.config = scene, motion, obj, config
+        self.max_ticks = int(max_time_s / motion.config.control_period_s)
+        self.controller = StrokeController(config, scene.robot.tool_state().position_m)
+        self.q = scene.robot.arm_q()
+        self.recorder = _TraceRecorder()
+        self.forces: list[float] = []
+        self.phases: list[StrokePhase] = []
+        self.commanded: list[np.ndarray] = []
+        self.actual: list[np.ndarray] = []
+        self.errors: list[float] = []
+        self.slide_start: np.ndarray | None = None
+        self.slide_end: np.ndarray | None = None
+        self.slide_time_s = 0.0
+        self.command: StrokeCommand | None = None
+        self._prev_velocity: np.ndarray | None = None
+        self._gravity = np.array([0.0, 0.0, scene.sim.config.gravity_mps2])
+
+    @property
+    def finished(self) -> bool:
+        return self.command is not None and (self.command.done or self.command.failed or len(self.forces) >= self.max_ticks)
+
+    @property
+    def phase(self) -> StrokePhase | None:
+        return None if self.command is None else self.command.phase
+
+    def step(self) -> bool:
+        """One control tick: measure, update the controller, solve IK, command, step the physics. True when finished."""
+        if self.finished:
+            return True
+        robot, motion = self.scene.robot, self.motion
+        dt = motion.config.control_period_s
+        force = pad_normal_force_n(self.scene, self.obj)
+        command = self.command = self.controller.step(force, dt)
+        self.forces.append(force)
+        self.phases.append(command.phase)
+        self.commanded.append(command.position_m)
+        self.actual.append(robot.tool_state().position_m)
+        self.errors.append(float(np.linalg.norm(self.actual[-1] - command.position_m)))
+        if command.phase is StrokePhase.SLIDE:
+            if self.slide_start is None:
+                self.slide_start = self.actual[-1]
+            self.slide_time_s += dt
+            self.slide_end = self.actual[-1]
+        if command.done or command.failed:
+            return True
+        self.q = motion.pad_ik.solve_local(motion.to_base(command.position_m, command.rotation), self.q).q
+        robot.command_arm(self.q)
+        for _ in range(motion.substeps):
+            self.scene.sim.step()
+            self._record_physics_step()
+        return self.finished
+
+    def _record_physics_step(self) -> None:
+        sim, robot, rec = self.scene.sim, self.scene.robot, self.recorder
+        pad = robot.tool_state()
+        rot = pad.rotation
+        obj_state = sim.link_state(self.obj.body, -1)
+        velocity_w = pad.linear_velocity_mps - obj_state.linear_velocity_mps
+        accel_w = (np.zeros(3) if self._prev_velocity is None
+                   else (pad.linear_velocity_mps - self._prev_velocity) / sim.config.time_step_s)
+        self._prev_velocity = pad.linear_velocity_mps
+        valid = np.zeros(MAX_CONTACT_POINTS, bool)
+        normal = np.zeros(MAX_CONTACT_POINTS)
+        shear = np.zeros((MAX_CONTACT_POINTS, 2))
+        on_pad = np.zeros((MAX_CONTACT_POINTS, 2))
+        for k, c in enumerate(robot.pad_contacts(self.obj.body)[:MAX_CONTACT_POINTS]):
+            valid[k] = True
+            normal[k] = max(0.0, c.normal_force_n)
+            shear[k] = (rot.T @ c.shear_force_n)[:2]  # friction on the pad (body A), pad frame
+            on_pad[k] = (rot.T @ (c.position_on_a_m - pad.position_m))[:2]
+        rec.t_s.append(sim.time_s)
+        rec.valid.append(valid)
+        rec.normal.append(normal)
+        rec.shear.append(shear)
+        rec.on_pad.append(on_pad)
+        rec.on_object.append((obj_state.rotation.T @ (pad.position_m - obj_state.position_m))[:2])
+        rec.velocity.append(rot.T @ velocity_w)
+        rec.acceleration.append(rot.T @ (accel_w + self._gravity))  # an accelerometer reads a - g
+
+    def result(self) -> StrokeResult:
+        command = self.command
+        if command is None:
+            raise RuntimeError("the stroke has not started")
+        failure = command.failure_reason if command.failed else ("" if command.done else "stroke did not finish in time")
+        return StrokeResult(config=self.config, success=command.done, failure_reason=failure,
+                            trace=self.recorder.to_trace(), force_log_n=np.array(self.forces),
+                            phase_log=tuple(self.phases), commanded_m=np.array(self.commanded),
+                            actual_m=np.array(self.actual), tracking_error_m=np.array(self.errors),
+                            slide_start_m=self.slide_start, slide_end_m=self.slide_end,
+                            slide_duration_s=self.slide_time_s)
+
+
 def run_stroke(scene: Scene, motion: ArmMotion, obj: SceneObject, config: StrokeConfig,
                max_time_s: float = 20.0) -> StrokeResult:
-    """Execute one stroke on ``obj`` (the pad must already hover at the start, see :func:`move_pad_above`)."""
-    robot, sim = scene.robot, scene.sim
-    dt = motion.config.control_period_s
-    physics_dt = sim.config.time_step_s
-    pad_pos = robot.tool_state().position_m
-    controller = StrokeController(config, pad_pos)
-    q = robot.arm_q()
-    rec = _TraceRecorder()
-    forces, phases, commanded, actual, errors = [], [], [], [], []
-    slide_start = slide_end = None
-    slide_time = 0.0
-    prev_velocity = None
-    command: StrokeCommand | None = None
-    gravity = np.array([0.0, 0.0, sim.config.gravity_mps2])
-    for _tick in range(int(max_time_s / dt)):
-        force = pad_normal_force_n(scene, obj)
-        command = controller.step(force, dt)
-        forces.append(force)
-        phases.append(command.phase)
-        commanded.append(command.position_m)
-        actual.append(robot.tool_state().position_m)
-        errors.append(float(np.linalg.norm(actual[-1] - command.position_m)))
-        if command.phase is StrokePhase.SLIDE:
-            if slide_start is None:
-                slide_start = robot.tool_state().position_m
-            slide_time += dt
-            slide_end = robot.tool_state().position_m
-        if command.done or command.failed:
-            break
-        sol = motion.pad_ik.solve_local(motion.to_base(command.position_m, command.rotation), q)
-        q = sol.q
-        robot.command_arm(q)
-        for _ in range(motion.substeps):
-            sim.step()
-            pad = robot.tool_state()
-            rot = pad.rotation
-            obj_state = sim.link_state(obj.body, -1)
-            velocity_w = pad.linear_velocity_mps - obj_state.linear_velocity_mps
-            accel_w = np.zeros(3) if prev_velocity is None else (pad.linear_velocity_mps - prev_velocity) / physics_dt
-            prev_velocity = pad.linear_velocity_mps
-            valid = np.zeros(MAX_CONTACT_POINTS, bool)
-            normal = np.zeros(MAX_CONTACT_POINTS)
-            shear = np.zeros((MAX_CONTACT_POINTS, 2))
-            on_pad = np.zeros((MAX_CONTACT_POINTS, 2))
-            for k, c in enumerate(robot.pad_contacts(obj.body)[:MAX_CONTACT_POINTS]):
-                valid[k] = True
-                normal[k] = max(0.0, c.normal_force_n)
-                # PyBullet reports the friction impulse acting on body B (the object); the pad feels the opposite
-                shear[k] = (rot.T @ (-c.shear_force_n))[:2]
-                on_pad[k] = (rot.T @ (c.position_on_a_m - pad.position_m))[:2]
-            rec.t_s.append(sim.time_s)
-            rec.valid.append(valid)
-            rec.normal.append(normal)
-            rec.shear.append(shear)
-            rec.on_pad.append(on_pad)
-            rec.on_object.append((obj_state.rotation.T @ (pad.position_m - obj_state.position_m))[:2])
-            rec.velocity.append(rot.T @ velocity_w)
-            rec.acceleration.append(rot.T @ (accel_w + gravity))
-    assert command is not None
-    failure = command.failure_reason if command.failed else ("" if command.done else "stroke did not finish in time")
-    return StrokeResult(config=config, success=command.done, failure_reason=failure, trace=rec.to_trace(),
-                        force_log_n=np.array(forces), phase_log=tuple(phases), commanded_m=np.array(commanded),
-                        actual_m=np.array(actual),                         tracking_error_m=np.array(errors), slide_start_m=slide_start, slide_end_m=slide_end,
-                        slide_duration_s=slide_time)
+    """Execute a whole stroke (see :class:`StrokeExecution`) and return its result."""
+    execution = StrokeExecution(scene, motion, obj, config, max_time_s)
+    while not execution.step():
+        pass
+    return execution.result()
 
 
 def cruise_speed_mps(result: StrokeResult, period_s: float) -> float:

@@ -31,6 +31,14 @@ def test_press_holds_force_and_slide_covers_distance_at_speed(category, seed, fo
         assert distance == pytest.approx(config.length_m, rel=0.1)
         assert cruise_speed_mps(result, motion.config.control_period_s) == pytest.approx(config.speed_mps, rel=0.1)
         assert np.median(result.tracking_error_m) < 0.5e-3
+        # friction on the pad opposes its sliding, and shear / normal is the material's kinetic friction
+        trace = result.trace
+        normal, shear = trace.total_normal_force_n(), trace.total_shear_force_n()
+        steady = (normal > 0.5 * force_n) & (trace.pad_velocity_mps[:, 0] > 0.75 * config.speed_mps)
+        assert steady.sum() > 100
+        assert np.all(shear[steady, 0] < 0)
+        ratio = np.median(np.linalg.norm(shear[steady], axis=1) / normal[steady])
+        assert ratio == pytest.approx(obj.spec.material.friction_kinetic, rel=0.15)
         # the object stayed put: friction on the anti-slip table held it while the pad dragged across
         assert np.linalg.norm(scene.object_pose(obj)[0][:2] - np.array(obj.spec.xy_m)) < 0.003
 
