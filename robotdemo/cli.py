@@ -32,6 +32,33 @@ def _cmd_scene(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_dataset(args: argparse.Namespace) -> int:
+    from robotdemo.dataset import DatasetConfig, generate_dataset
+
+    config = DatasetConfig(strokes_per_instance=args.strokes_per_instance, objects_per_instance=args.objects_per_instance,
+                           seed=args.seed, env=args.env,
+                           categories=tuple(args.categories.split(",")) if args.categories else None)
+    manifest = generate_dataset(args.out, config, workers=args.workers, progress=not args.quiet)
+    n = sum(s["n_strokes"] for s in manifest["shards"])
+    failed = sum(s["failed_strokes"] for s in manifest["shards"])
+    print(f"{args.out}: {n} strokes in {len(manifest['shards'])} shards ({failed} could not be recorded)")
+    return 0
+
+
+def _cmd_plot_strokes(args: argparse.Namespace) -> int:
+    from perception.dataset import load_dataset
+    from robotdemo.plots import plot_strokes
+
+    records = load_dataset(args.data).records
+    chosen, seen = [], set()
+    for rec in records:  # the first stroke of each category, in catalogue order of appearance
+        if rec.category not in seen:
+            seen.add(rec.category)
+            chosen.append(rec)
+    print(plot_strokes(chosen[: args.max], args.out))
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "ik":
         from robotdemo.benchmarks.ik_bench import run_ik_benchmark
@@ -39,6 +66,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "trajectory":
         from robotdemo.benchmarks.trajectory_bench import run_trajectory_benchmark
         result = run_trajectory_benchmark(n_plans=args.n or 1000, seed=args.seed)
+    elif args.what == "emulation":
+        from robotdemo.benchmarks.emulation_bench import run_emulation_benchmark
+        result = run_emulation_benchmark(n_strokes=args.n or 6, seed=args.seed)
     else:  # pragma: no cover - argparse restricts choices
         raise RobotDemoError(f"unknown benchmark {args.what!r}")
     print(json.dumps(result, indent=2) if args.json else _format_flat(result))
@@ -75,8 +105,25 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--json", action="store_true")
     demo.set_defaults(func=_cmd_scene)
 
+    dataset = sub.add_parser("dataset", help="record the stroke data set (real strokes in PyBullet + sensor emulation)")
+    dataset.add_argument("--out", required=True, help="output folder (resumed if it exists)")
+    dataset.add_argument("--strokes-per-instance", type=int, default=30)
+    dataset.add_argument("--objects-per-instance", type=int, default=3)
+    dataset.add_argument("--seed", type=int, default=0)
+    dataset.add_argument("--workers", type=int, default=1)
+    dataset.add_argument("--env", choices=["clean", "fire"], default="clean")
+    dataset.add_argument("--categories", default=None, help="comma-separated subset, e.g. metal,wood")
+    dataset.add_argument("--quiet", action="store_true", help="no progress bar")
+    dataset.set_defaults(func=_cmd_dataset)
+
+    plot = sub.add_parser("plot-strokes", help="the four streams side by side for a few materials (PNG)")
+    plot.add_argument("data", help="a data set folder")
+    plot.add_argument("--out", required=True, help="PNG file to write")
+    plot.add_argument("--max", type=int, default=7, help="how many strokes (one per category)")
+    plot.set_defaults(func=_cmd_plot_strokes)
+
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
-    bench.add_argument("what", choices=["ik", "trajectory"])
+    bench.add_argument("what", choices=["ik", "trajectory", "emulation"])
     bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--json", action="store_true")

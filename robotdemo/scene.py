@@ -170,7 +170,9 @@ def plan_objects(config: SceneConfig, catalogue: MaterialCatalogue, rng: np.rand
 class Scene:
     """A built scene; owns its :class:`Simulator` (close it, or use as a context manager)."""
 
-    def __init__(self, config: SceneConfig, catalogue: MaterialCatalogue | None = None) -> None:
+    def __init__(self, config: SceneConfig, catalogue: MaterialCatalogue | None = None,
+                 objects: Sequence[ObjectSpec] | None = None) -> None:
+        """Build the scene; ``objects`` replaces the seeded draw of ``config.n_objects`` objects when given."""
         self.config = config
         self.catalogue = catalogue if catalogue is not None else load_catalogue()
         self.rng = np.random.default_rng(config.seed)
@@ -187,7 +189,8 @@ class Scene:
         for zone in self.zones:
             self.sim.load_urdf(urdf_path(ZONE_URDFS[zone.name]), (*zone.center_xy_m, top), fixed_base=True)
         self.robot = Robot(self.sim, (*config.robot_base_xy_m, top), config.robot_yaw_rad)
-        self.objects: list[SceneObject] = [self._create(spec) for spec in plan_objects(config, self.catalogue, self.rng)]
+        specs = plan_objects(config, self.catalogue, self.rng) if objects is None else list(objects)
+        self.objects: list[SceneObject] = [self._create(spec) for spec in specs]
         self.sim.step(int(round(config.settle_s / config.sim.time_step_s)))
         self.sim.check_state_finite()
 

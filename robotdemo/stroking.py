@@ -18,7 +18,39 @@ from robotdemo.motion import ArmMotion, hold, run_to_completion
 from robotdemo.robot import GripperPosture
 from robotdemo.scene import Scene, SceneObject
 
-MAX_CONTACT_POINTS = 8
+MAX_CONTACT_POINTS = 16
+PATCH_GRID = 4
+
+
+def distribute_patch(positions_m: np.ndarray, normal_n: np.ndarray, shear_n: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Spread a face-on-face contact over its patch.
+
+    For two flat faces PyBullet reports the corners of the contact polygon, each carrying part of the load;
+    the real pressure acts over the whole patch. A rigid flat contact has a pressure field linear in position,
+    fixed by the total force and its first moments, which the corner forces give. This returns that field
+    sampled at the centres of a PATCH_GRID x PATCH_GRID grid over the points' bounding rectangle (pad frame),
+    with the shear shared out in proportion to the local pressure (Coulomb friction). Fewer than three points
+    (an edge or a corner touching) are returned unchanged.
+
+    Args:
+        positions_m: (n, 2) contact points on the pad, pad frame, m.
+        normal_n: (n,) normal force per point, N.
+        shear_n: (n, 2) shear per point, pad frame, N.
+    """
+    total = float(normal_n.sum())
+    lo, hi = positions_m.min(axis=0), positions_m.max(axis=0)
+    if len(normal_n) < 3 or total <= 0.0 or np.any(hi - lo < 1e-4):
+        return positions_m, normal_n, shear_n
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    offsets = (np.arange(PATCH_GRID) + 0.5) / PATCH_GRID * 2 - 1  # cell centres in [-1, 1]
+    gx, gy = np.meshgrid(offsets * half[0], offsets * half[1], indexing="ij")
+    grid = np.column_stack([gx.ravel(), gy.ravel()])  # (G, 2) relative to the centre
+    moment = (normal_n[:, None] * (positions_m - centre)).sum(axis=0)  # first moments of the load
+    slope = moment / (total / len(grid) * np.sum(grid**2, axis=0))
+    weights = np.clip(1.0 + grid @ slope, 0.0, None)
+    weights /= weights.sum()
+    return grid + centre, total * weights, shear_n.sum(axis=0)[None, :] * weights[:, None]
 
 
 @dataclass
@@ -174,11 +206,14 @@ class StrokeExecution:
         normal = np.zeros(MAX_CONTACT_POINTS)
         shear = np.zeros((MAX_CONTACT_POINTS, 2))
         on_pad = np.zeros((MAX_CONTACT_POINTS, 2))
-        for k, c in enumerate(robot.pad_contacts(self.obj.body)[:MAX_CONTACT_POINTS]):
-            valid[k] = True
-            normal[k] = max(0.0, c.normal_force_n)
-            shear[k] = (rot.T @ c.shear_force_n)[:2]  # friction on the pad (body A), pad frame
-            on_pad[k] = (rot.T @ (c.position_on_a_m - pad.position_m))[:2]
+        contacts = robot.pad_contacts(self.obj.body)
+        if contacts:
+            points = np.array([(rot.T @ (c.position_on_a_m - pad.position_m))[:2] for c in contacts])
+            forces = np.array([max(0.0, c.normal_force_n) for c in contacts])
+            shears = np.array([(rot.T @ c.shear_force_n)[:2] for c in contacts])  # friction on the pad (body A)
+            points, forces, shears = distribute_patch(points, forces, shears)
+            k = min(len(forces), MAX_CONTACT_POINTS)
+            valid[:k], normal[:k], shear[:k], on_pad[:k] = True, forces[:k], shears[:k], points[:k]
         rec.t_s.append(sim.time_s)
         rec.valid.append(valid)
         rec.normal.append(normal)

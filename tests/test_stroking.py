@@ -61,3 +61,19 @@ def test_normal_force_rises_with_pressing():
             forces.append(sum(c.normal_force_n for c in scene.robot.pad_contacts(obj.body)))
         assert forces[0] == 0.0
         assert forces[1] > 0 and all(b > a for a, b in zip(forces[1:], forces[2:])), forces
+
+
+def test_patch_distribution_keeps_force_and_moment():
+    from robotdemo.stroking import distribute_patch
+
+    corners = np.array([[-0.008, -0.008], [0.008, -0.008], [0.008, 0.008], [-0.008, 0.008]])
+    normal = np.array([1.0, 2.0, 2.0, 1.0])  # more load on +x
+    shear = np.array([[-0.5, 0.0]] * 4)
+    points, forces, shears = distribute_patch(corners, normal, shear)
+    assert len(points) == 16 and np.all(forces >= 0)
+    assert forces.sum() == pytest.approx(6.0)
+    assert (forces[:, None] * points).sum(axis=0) == pytest.approx((normal[:, None] * corners).sum(axis=0))
+    assert shears.sum(axis=0) == pytest.approx([-2.0, 0.0])
+    # an edge contact (two points) is left as it is
+    p2, f2, s2 = distribute_patch(corners[:2], normal[:2], shear[:2])
+    assert np.array_equal(f2, normal[:2])

@@ -1,0 +1,264 @@
+"""The stroke data set: real strokes in PyBullet, shaped into the four sensor streams, written in shards.
+
+One shard holds every stroke of one material instance: ``objects_per_instance`` physical objects of that
+material (each with its own drawn parameters, size, pose and surface texture), each stroked several times with
+randomised target force, speed, length, direction and start point. A shard's content depends only on the data
+set's seed and the instance's index, so the data are identical whatever the number of workers, and a rerun
+skips shards already written (each is written atomically, then recorded in the manifest, also atomically).
+
+Layout (read by :func:`perception.dataset.load_dataset`)::
+
+    DIR/manifest.json      {"format": "robotdemo-dataset", "version": 1, "env", "seed", "config",
+                            "shards": [{"file", "n_strokes", "sha256", "instance", "failed_strokes"}]}
+    DIR/shards/shard-00007-oak.npz   (perception.recording_io stroke file)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import multiprocessing as mp
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from controllers.stroke import StrokeConfig
+from perception.contact_trace import ObjectInfo
+from perception.materials import Material, MaterialCatalogue, contact_dynamics, default_catalogue, sample_material
+from perception.recording_io import write_strokes
+from perception.streams import StrokeRecord
+from perception.tactile import ENVIRONMENTS, emulate_stroke
+from robotdemo.errors import RobotDemoError
+from robotdemo.motion import ArmMotion, UnreachableError
+from robotdemo.robot import GripperPosture
+from robotdemo.scene import ObjectSpec, Scene, SceneConfig
+from robotdemo.sim import SimulationError
+from robotdemo.stroking import StrokeExecution, move_pad_above, top_surface_point
+
+FORMAT_NAME = "robotdemo-dataset"
+FORMAT_VERSION = 1
+PAD_HALF_M = 0.008
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """What to record.
+
+    Attributes:
+        strokes_per_instance: strokes recorded per material instance (one shard per instance).
+        objects_per_instance: distinct physical objects per instance; strokes are spread over them.
+        seed: seeds everything (objects, poses, stroke parameters, sensor noise).
+        env: sensor environment profile, ``clean`` or ``fire``.
+        categories: restrict to these categories (``None``: all seven).
+        instances: restrict to these material instances (``None``: all of the chosen categories).
+        force_range_n, speed_range_mps, length_range_m: stroke parameter ranges (uniform draws).
+        max_attempts_per_stroke: a stroke that fails (the object tipped, force never settled) is redrawn.
+    """
+
+    strokes_per_instance: int = 30
+    objects_per_instance: int = 3
+    seed: int = 0
+    env: str = "clean"
+    categories: tuple[str, ...] | None = None
+    instances: tuple[str, ...] | None = None
+    force_range_n: tuple[float, float] = (0.5, 5.0)
+    speed_range_mps: tuple[float, float] = (0.005, 0.05)
+    length_range_m: tuple[float, float] = (0.02, 0.06)
+    max_attempts_per_stroke: int = 3
+
+    def __post_init__(self) -> None:
+        if self.env not in ENVIRONMENTS:
+            raise ValueError(f"unknown environment {self.env!r}; expected one of {sorted(ENVIRONMENTS)}")
+        if self.strokes_per_instance < 1 or self.objects_per_instance < 1:
+            raise ValueError("strokes_per_instance and objects_per_instance must be >= 1")
+
+
+@dataclass(frozen=True)
+class ShardJob:
+    index: int
+    instance: str
+    file: str
+
+
+def _object_size(rng: np.random.Generator) -> tuple[str, tuple[float, float, float]]:
+    """Blocks, slabs and bars that rest stably under a stroke (height below the narrower side) and leave room
+    for slides; bars give the long, thin shapes whose bending modes fall in the audible band."""
+    kind = ("block", "slab", "bar")[int(rng.integers(3))]
+    if kind == "block":
+        x, y = rng.uniform(0.05, 0.08, size=2)
+        z = rng.uniform(0.025, 0.8 * min(x, y))
+    elif kind == "slab":
+        x, y, z = rng.uniform(0.07, 0.10), rng.uniform(0.05, 0.08), rng.uniform(0.015, 0.03)
+    else:
+        x, y, z = rng.uniform(0.10, 0.16), rng.uniform(0.035, 0.05), rng.uniform(0.015, 0.03)
+    return kind, (float(x), float(y), float(z))
+
+
+def _stroke_config(obj_size_m: tuple[float, float, float], top_center: np.ndarray, yaw_rad: float,
+                   config: DatasetConfig, rng: np.random.Generator) -> tuple[StrokeConfig, dict]:
+    """Draw force, speed, length, direction and start so the whole slide stays on the top face."""
+    force = float(rng.uniform(*config.force_range_n))
+    speed = float(rng.uniform(*config.speed_range_mps))
+    direction_obj = float(rng.uniform(-math.pi, math.pi))
+    half = np.array(obj_size_m[:2]) / 2 - PAD_HALF_M - 0.003
+    d = np.array([math.cos(direction_obj), math.sin(direction_obj)])
+    # longest slide through the face along d: room from one side to the other
+    room = float(np.min(2 * half / np.maximum(np.abs(d), 1e-9)))
+    if room < config.length_range_m[0]:  # too narrow this way: slide along the long axis instead
+        direction_obj = 0.0 if half[0] >= half[1] else math.pi / 2
+        d = np.array([math.cos(direction_obj), math.sin(direction_obj)])
+        room = float(np.min(2 * half / np.maximum(np.abs(d), 1e-9)))
+    length = float(min(rng.uniform(*config.length_range_m), room))
+    # start anywhere such that start and end lie inside the face
+    lo = np.maximum(-half, -half - d * length)
+    hi = np.minimum(half, half - d * length)
+    start_obj = rng.uniform(lo, np.maximum(lo, hi))
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    start_world = top_center + np.array([c * start_obj[0] - s * start_obj[1], s * start_obj[0] + c * start_obj[1], 0.0])
+    stroke = StrokeConfig(target_force_n=force, speed_mps=speed, length_m=max(length, 0.02),
+                          direction_rad=direction_obj + yaw_rad, start_point_m=tuple(float(v) for v in start_world),
+                          approach_height_m=0.008, press_speed_mps=0.02, slow_zone_m=0.002, contact_speed_mps=0.004)
+    params = {"target_force_n": force, "speed_mps": speed, "length_m": stroke.length_m,
+              "direction_on_object_rad": direction_obj, "start_on_object_m": [float(v) for v in start_obj]}
+    return stroke, params
+
+
+def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalogue | None = None) -> list[StrokeRecord]:
+    """All strokes of one instance (deterministic in ``config.seed`` and ``job.index``)."""
+    catalogue = catalogue or default_catalogue()
+    material: Material = catalogue.instance(job.instance)
+    seq = np.random.SeedSequence([config.seed, job.index])
+    rng = np.random.default_rng(seq)
+    env = ENVIRONMENTS[config.env]
+    records: list[StrokeRecord] = []
+    per_object = [len(a) for a in np.array_split(np.arange(config.strokes_per_instance), config.objects_per_instance)]
+    for obj_index, n_strokes in enumerate(per_object):
+        if n_strokes == 0:
+            continue
+        object_seed = int(rng.integers(2**31))
+        obj_rng = np.random.default_rng(object_seed)
+        kind, size = _object_size(obj_rng)
+        sample = sample_material(material, obj_rng)
+        shape = "box"
+        spec = ObjectSpec(name=f"{job.instance}_{obj_index}", shape="slab" if kind != "block" else "box", size_m=size,
+                          xy_m=(float(obj_rng.uniform(-0.26, -0.16)), float(obj_rng.uniform(-0.08, 0.08))),
+                          yaw_rad=float(obj_rng.uniform(-math.pi / 2, math.pi / 2)), material=sample,
+                          dynamics=contact_dynamics(sample, size, shape))
+        object_id = f"{config.seed}-{job.index}-{obj_index}"
+        info = ObjectInfo(material=sample, size_m=size, shape=shape, surface_seed=object_seed)
+        with Scene(SceneConfig(n_objects=0, seed=object_seed), catalogue=catalogue, objects=[spec]) as scene:
+            obj = scene.objects[0]
+            motion = ArmMotion(scene.robot)
+            scene.robot.command_gripper(GripperPosture.stroke())
+            done = 0
+            attempts = 0
+            while done < n_strokes and attempts < n_strokes * config.max_attempts_per_stroke:
+                attempts += 1
+                top = top_surface_point(scene, obj)
+                center_before, _ = scene.object_pose(obj)
+                _, orn = scene.object_pose(obj)
+                yaw = 2.0 * math.atan2(orn[2], orn[3])
+                stroke, params = _stroke_config(size, top, yaw, config, rng)
+                stroke_seed = int(rng.integers(2**31))
+                try:
+                    move_pad_above(scene, motion, stroke)
+                except UnreachableError:
+                    continue
+                execution = StrokeExecution(scene, motion, obj, stroke)
+                while not execution.step():
+                    pass
+                result = execution.result()
+                moved = np.linalg.norm(scene.object_pose(obj)[0] - center_before)
+                if not result.success or moved > 0.005:
+                    continue
+                meta = {"object_id": object_id, "object_kind": kind, "size_m": list(size), "env": config.env,
+                        "stroke_seed": stroke_seed, "dataset_seed": config.seed, **params}
+                records.append(emulate_stroke(result.trace, info, env, np.random.default_rng(stroke_seed), meta=meta))
+                done += 1
+    return records
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _write_json_atomic(path: Path, payload: dict) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(payload, fh, indent=1, sort_keys=True)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def plan_jobs(config: DatasetConfig, catalogue: MaterialCatalogue) -> list[ShardJob]:
+    names = [name for name, m in catalogue.instances.items()
+             if (config.categories is None or m.category in config.categories)
+             and (config.instances is None or name in config.instances)]
+    if not names:
+        raise RobotDemoError(f"no material instance matches categories={config.categories} instances={config.instances}")
+    return [ShardJob(index=i, instance=name, file=f"shards/shard-{i:05d}-{name}.npz") for i, name in enumerate(names)]
+
+
+def _run_job(args: tuple[ShardJob, DatasetConfig, str]) -> tuple[ShardJob, int, float]:
+    job, config, out_dir = args
+    t0 = time.perf_counter()
+    records = record_shard(job, config)
+    write_strokes(Path(out_dir) / job.file, records)
+    return job, len(records), time.perf_counter() - t0
+
+
+def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 1, progress: bool = True) -> dict:
+    """Record (or resume recording) the data set into ``out_dir``. Returns the manifest."""
+    out = Path(out_dir)
+    (out / "shards").mkdir(parents=True, exist_ok=True)
+    catalogue = default_catalogue()
+    jobs = plan_jobs(config, catalogue)
+    manifest_path = out / "manifest.json"
+    manifest = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "env": config.env, "seed": config.seed,
+                "config": asdict(config), "shards": []}
+    if manifest_path.is_file():
+        try:
+            previous = json.loads(manifest_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise RobotDemoError(f"{manifest_path}: not valid JSON ({exc}); move it away to start over") from None
+        if previous.get("config") != json.loads(json.dumps(asdict(config))):
+            raise RobotDemoError(f"{manifest_path}: written with another configuration; use another --out "
+                                 "or the same options to resume")
+        manifest["shards"] = [s for s in previous.get("shards", []) if (out / s["file"]).is_file()
+                              and _sha256(out / s["file"]) == s["sha256"]]
+    finished = {s["file"] for s in manifest["shards"]}
+    todo = [job for job in jobs if job.file not in finished]
+    total_strokes = config.strokes_per_instance * len(jobs)
+    bar = tqdm(total=total_strokes, initial=sum(s["n_strokes"] for s in manifest["shards"]), unit="stroke",
+               desc=f"dataset {config.env}", disable=not progress, dynamic_ncols=True)
+    args = [(job, config, str(out)) for job in todo]
+    pool = mp.get_context("spawn").Pool(workers) if workers > 1 and len(todo) > 1 else None
+    try:
+        results: Iterator = pool.imap_unordered(_run_job, args) if pool else map(_run_job, args)
+        for job, n, _seconds in results:
+            manifest["shards"].append({"file": job.file, "instance": job.instance, "n_strokes": n,
+                                       "failed_strokes": config.strokes_per_instance - n,
+                                       "sha256": _sha256(out / job.file)})
+            manifest["shards"].sort(key=lambda s: s["file"])
+            _write_json_atomic(manifest_path, manifest)
+            bar.update(n)
+    finally:
+        if pool is not None:
+            pool.terminate()
+        bar.close()
+    _write_json_atomic(manifest_path, manifest)
+    return manifest
