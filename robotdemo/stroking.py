@@ -18,44 +18,66 @@ from robotdemo.motion import ArmMotion, hold, run_to_completion
 from robotdemo.robot import GripperPosture
 from robotdemo.scene import Scene, SceneObject
 
-MAX_CONTACT_POINTS = 16
+RAW_CONTACT_POINTS = 8
+"""PyBullet's contact manifold holds at most 4 points per pair; room for a few more from edge contacts."""
 PATCH_GRID = 4
+MAX_CONTACT_POINTS = PATCH_GRID * PATCH_GRID
 
 
-def distribute_patch(positions_m: np.ndarray, normal_n: np.ndarray, shear_n: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Spread a face-on-face contact over its patch.
+def distribute_patch(positions_m: np.ndarray, normal_n: np.ndarray, shear_n: np.ndarray,
+                     valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Spread face-on-face contacts over their patch, for every time step at once.
 
     For two flat faces PyBullet reports the corners of the contact polygon, each carrying part of the load;
     the real pressure acts over the whole patch. A rigid flat contact has a pressure field linear in position,
-    fixed by the total force and its first moments, which the corner forces give. This returns that field
-    sampled at the centres of a PATCH_GRID x PATCH_GRID grid over the points' bounding rectangle (pad frame),
-    with the shear shared out in proportion to the local pressure (Coulomb friction). Fewer than three points
-    (an edge or a corner touching) are returned unchanged.
+    fixed by the total force and its first moments, which the corner forces give. Rows with three or more
+    points get that field sampled at the centres of a PATCH_GRID x PATCH_GRID grid over the points' bounding
+    rectangle (pad frame), with the shear shared in proportion to the local pressure (Coulomb friction).
+    Rows with fewer points (an edge or a corner touching) keep them as they are.
 
     Args:
-        positions_m: (n, 2) contact points on the pad, pad frame, m.
-        normal_n: (n,) normal force per point, N.
-        shear_n: (n, 2) shear per point, pad frame, N.
+        positions_m: (T, P, 2) contact points on the pad, pad frame, m.
+        normal_n: (T, P) normal force per point, N.
+        shear_n: (T, P, 2) shear per point, pad frame, N.
+        valid: (T, P) which points exist.
+
+    Returns:
+        positions (T, G, 2), normal (T, G), shear (T, G, 2), valid (T, G) with G = MAX_CONTACT_POINTS.
     """
-    total = float(normal_n.sum())
-    lo, hi = positions_m.min(axis=0), positions_m.max(axis=0)
-    if len(normal_n) < 3 or total <= 0.0 or np.any(hi - lo < 1e-4):
-        return positions_m, normal_n, shear_n
-    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    n_steps, n_points = normal_n.shape
+    g = MAX_CONTACT_POINTS
+    out_pos, out_normal = np.zeros((n_steps, g, 2)), np.zeros((n_steps, g))
+    out_shear, out_valid = np.zeros((n_steps, g, 2)), np.zeros((n_steps, g), bool)
+    k = min(n_points, g)
+    out_pos[:, :k], out_normal[:, :k], out_shear[:, :k], out_valid[:, :k] = (
+        positions_m[:, :k], normal_n[:, :k], shear_n[:, :k], valid[:, :k])
+    normal = np.where(valid, normal_n, 0.0)
+    total = normal.sum(axis=1)
+    lo = np.where(valid[..., None], positions_m, np.inf).min(axis=1)
+    hi = np.where(valid[..., None], positions_m, -np.inf).max(axis=1)
+    patch = (valid.sum(axis=1) >= 3) & (total > 0) & np.all(hi - lo >= 1e-4, axis=1)
+    if not patch.any():
+        return out_pos, out_normal, out_shear, out_valid
+    lo, hi, total = lo[patch], hi[patch], total[patch]
+    centre, half = (lo + hi) / 2, (hi - lo) / 2  # (R, 2)
     offsets = (np.arange(PATCH_GRID) + 0.5) / PATCH_GRID * 2 - 1  # cell centres in [-1, 1]
-    gx, gy = np.meshgrid(offsets * half[0], offsets * half[1], indexing="ij")
-    grid = np.column_stack([gx.ravel(), gy.ravel()])  # (G, 2) relative to the centre
-    moment = (normal_n[:, None] * (positions_m - centre)).sum(axis=0)  # first moments of the load
-    slope = moment / (total / len(grid) * np.sum(grid**2, axis=0))
-    weights = np.clip(1.0 + grid @ slope, 0.0, None)
-    weights /= weights.sum()
-    return grid + centre, total * weights, shear_n.sum(axis=0)[None, :] * weights[:, None]
+    unit = np.stack(np.meshgrid(offsets, offsets, indexing="ij"), axis=-1).reshape(-1, 2)  # (G, 2)
+    grid = unit[None] * half[:, None, :]  # (R, G, 2) relative to the centre
+    moment = (normal[patch][..., None] * (positions_m[patch] - centre[:, None, :])).sum(axis=1)  # (R, 2)
+    slope = moment / (total[:, None] / g * np.sum(grid**2, axis=1))
+    weights = np.clip(1.0 + np.einsum("rgc,rc->rg", grid, slope), 0.0, None)
+    weights /= weights.sum(axis=1, keepdims=True)
+    shear_total = np.where(valid[patch][..., None], shear_n[patch], 0.0).sum(axis=1)  # (R, 2)
+    out_pos[patch] = grid + centre[:, None, :]
+    out_normal[patch] = total[:, None] * weights
+    out_shear[patch] = shear_total[:, None, :] * weights[..., None]
+    out_valid[patch] = True
+    return out_pos, out_normal, out_shear, out_valid
 
 
 @dataclass
 class _TraceRecorder:
-    """Collects one row per physics step."""
+    """Collects one row per physics step (raw contact points; the patch is spread out in :meth:`to_trace`)."""
 
     t_s: list = field(default_factory=list)
     valid: list = field(default_factory=list)
@@ -67,9 +89,10 @@ class _TraceRecorder:
     acceleration: list = field(default_factory=list)
 
     def to_trace(self) -> ContactTrace:
-        return ContactTrace(t_s=np.array(self.t_s), point_valid=np.array(self.valid),
-                            point_normal_force_n=np.array(self.normal), point_shear_force_n=np.array(self.shear),
-                            point_position_on_pad_m=np.array(self.on_pad),
+        on_pad, normal, shear, valid = distribute_patch(np.array(self.on_pad), np.array(self.normal),
+                                                        np.array(self.shear), np.array(self.valid))
+        return ContactTrace(t_s=np.array(self.t_s), point_valid=valid, point_normal_force_n=normal,
+                            point_shear_force_n=shear, point_position_on_pad_m=on_pad,
                             pad_position_on_object_m=np.array(self.on_object),
                             pad_velocity_mps=np.array(self.velocity), pad_acceleration_mps2=np.array(self.acceleration))
 
@@ -202,18 +225,18 @@ class StrokeExecution:
         accel_w = (np.zeros(3) if self._prev_velocity is None
                    else (pad.linear_velocity_mps - self._prev_velocity) / sim.config.time_step_s)
         self._prev_velocity = pad.linear_velocity_mps
-        valid = np.zeros(MAX_CONTACT_POINTS, bool)
-        normal = np.zeros(MAX_CONTACT_POINTS)
-        shear = np.zeros((MAX_CONTACT_POINTS, 2))
-        on_pad = np.zeros((MAX_CONTACT_POINTS, 2))
-        contacts = robot.pad_contacts(self.obj.body)
+        valid = np.zeros(RAW_CONTACT_POINTS, bool)
+        normal = np.zeros(RAW_CONTACT_POINTS)
+        shear = np.zeros((RAW_CONTACT_POINTS, 2))
+        on_pad = np.zeros((RAW_CONTACT_POINTS, 2))
+        contacts = robot.pad_contacts(self.obj.body)[:RAW_CONTACT_POINTS]
         if contacts:
-            points = np.array([(rot.T @ (c.position_on_a_m - pad.position_m))[:2] for c in contacts])
-            forces = np.array([max(0.0, c.normal_force_n) for c in contacts])
-            shears = np.array([(rot.T @ c.shear_force_n)[:2] for c in contacts])  # friction on the pad (body A)
-            points, forces, shears = distribute_patch(points, forces, shears)
-            k = min(len(forces), MAX_CONTACT_POINTS)
-            valid[:k], normal[:k], shear[:k], on_pad[:k] = True, forces[:k], shears[:k], points[:k]
+            k = len(contacts)
+            valid[:k] = True
+            normal[:k] = [max(0.0, c.normal_force_n) for c in contacts]
+            rot_t = rot.T[:2]
+            on_pad[:k] = [rot_t @ (c.position_on_a_m - pad.position_m) for c in contacts]
+            shear[:k] = [rot_t @ c.shear_force_n for c in contacts]  # friction on the pad (body A), pad frame
         rec.t_s.append(sim.time_s)
         rec.valid.append(valid)
         rec.normal.append(normal)

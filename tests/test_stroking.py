@@ -66,14 +66,14 @@ def test_normal_force_rises_with_pressing():
 def test_patch_distribution_keeps_force_and_moment():
     from robotdemo.stroking import distribute_patch
 
-    corners = np.array([[-0.008, -0.008], [0.008, -0.008], [0.008, 0.008], [-0.008, 0.008]])
-    normal = np.array([1.0, 2.0, 2.0, 1.0])  # more load on +x
-    shear = np.array([[-0.5, 0.0]] * 4)
-    points, forces, shears = distribute_patch(corners, normal, shear)
-    assert len(points) == 16 and np.all(forces >= 0)
-    assert forces.sum() == pytest.approx(6.0)
-    assert (forces[:, None] * points).sum(axis=0) == pytest.approx((normal[:, None] * corners).sum(axis=0))
-    assert shears.sum(axis=0) == pytest.approx([-2.0, 0.0])
+    corners = np.array([[[-0.008, -0.008], [0.008, -0.008], [0.008, 0.008], [-0.008, 0.008]]] * 2)
+    normal = np.array([[1.0, 2.0, 2.0, 1.0], [1.0, 2.0, 0.0, 0.0]])  # row 0: more load on +x; row 1: an edge
+    shear = np.full((2, 4, 2), [-0.5, 0.0])
+    valid = np.array([[True] * 4, [True, True, False, False]])
+    points, forces, shears, ok = distribute_patch(corners, normal, shear, valid)
+    assert ok[0].sum() == 16 and np.all(forces[0] >= 0)
+    assert forces[0].sum() == pytest.approx(6.0)
+    assert (forces[0][:, None] * points[0]).sum(axis=0) == pytest.approx((normal[0][:, None] * corners[0]).sum(axis=0))
+    assert shears[0].sum(axis=0) == pytest.approx([-2.0, 0.0])
     # an edge contact (two points) is left as it is
-    p2, f2, s2 = distribute_patch(corners[:2], normal[:2], shear[:2])
-    assert np.array_equal(f2, normal[:2])
+    assert ok[1].sum() == 2 and np.array_equal(forces[1][:2], normal[1][:2])
