@@ -59,6 +59,26 @@ def _cmd_plot_strokes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from perception.train import TrainConfig, train_command
+
+    config = TrainConfig(model=args.model, task=args.task, epochs=args.epochs, batch_size=args.batch_size,
+                         seed=args.seed, device=args.device)
+    metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
+                            progress=not args.quiet)
+    print(json.dumps(metrics, indent=2, default=str))
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from perception.evaluate import evaluate_command
+
+    summary = evaluate_command(args.data, args.out, quick=args.quick, fire_dir=args.fire, device=args.device,
+                               seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet)
+    print(json.dumps(summary, indent=2, default=str))
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "ik":
         from robotdemo.benchmarks.ik_bench import run_ik_benchmark
@@ -66,6 +86,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "trajectory":
         from robotdemo.benchmarks.trajectory_bench import run_trajectory_benchmark
         result = run_trajectory_benchmark(n_plans=args.n or 1000, seed=args.seed)
+    elif args.what == "inference":
+        from perception.bench_inference import run_inference_benchmark
+        result = run_inference_benchmark(args.checkpoint or "touchformer", n=args.n or 200)
     elif args.what == "emulation":
         from robotdemo.benchmarks.emulation_bench import run_emulation_benchmark
         result = run_emulation_benchmark(n_strokes=args.n or 6, seed=args.seed)
@@ -122,8 +145,33 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--max", type=int, default=7, help="how many strokes (one per category)")
     plot.set_defaults(func=_cmd_plot_strokes)
 
+    train = sub.add_parser("train", help="train a model on a data set (safetensors checkpoint, resumable)")
+    train.add_argument("--data", required=True)
+    train.add_argument("--task", choices=["ssmc", "usmc", "fine"], default="ssmc")
+    train.add_argument("--model", default="touchformer",
+                       choices=["touchformer", "touchformer_mag", "touchformer_fusion", "lstm", "mtcnn"])
+    train.add_argument("--out", required=True)
+    train.add_argument("--epochs", type=int, default=50)
+    train.add_argument("--batch-size", type=int, default=32)
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--fold", type=int, default=0, help="usmc: which of the 5 folds to hold out")
+    train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
+    train.add_argument("--quiet", action="store_true")
+    train.set_defaults(func=_cmd_train)
+
+    evaluate = sub.add_parser("evaluate", help="the paper's experiments on our data: REPORT.md, JSON, plots")
+    evaluate.add_argument("--data", required=True)
+    evaluate.add_argument("--out", default="reports")
+    evaluate.add_argument("--fire", default=None, help="a fire-environment data set for the clean -> fire shift")
+    evaluate.add_argument("--quick", action="store_true", help="a small run (few epochs, one seed)")
+    evaluate.add_argument("--seeds", type=int, nargs="*", default=None)
+    evaluate.add_argument("--device", default="auto")
+    evaluate.add_argument("--quiet", action="store_true")
+    evaluate.set_defaults(func=_cmd_evaluate)
+
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
-    bench.add_argument("what", choices=["ik", "trajectory", "emulation"])
+    bench.add_argument("what", choices=["ik", "trajectory", "emulation", "inference"])
+    bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model)")
     bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--json", action="store_true")
@@ -131,12 +179,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_USER_ERROR_NAMES = {"TrainError", "CheckpointError"}
+"""perception's errors about bad input that are not ValueErrors (checked by name: importing perception.train
+here would load torch for every command)."""
+
+
+def _is_user_error(exc: BaseException) -> bool:
+    return isinstance(exc, (RobotDemoError, ValueError, FileNotFoundError)) or type(exc).__name__ in _USER_ERROR_NAMES
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
-    except (RobotDemoError, ValueError, FileNotFoundError) as exc:
+    except Exception as exc:  # noqa: BLE001 - user errors become one line; anything else is a bug: re-raise
+        if not _is_user_error(exc):
+            raise
         print(f"robotdemo: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,631 @@
+"""The paper's evaluation (sections 4-5) rerun on our data, written up beside the paper's numbers.
+
+:func:`evaluate` runs, on one data set folder (and optionally a second one recorded in the fire scene):
+
+1. Table 1: SSMC (7:3 split by stroke, stratified by category), USMC (k-fold, test folds hold unseen
+   instances), fine-grained (instance labels, 7:3 split stratified by instance); accuracy and G-mean, mean and
+   std over seeds (SSMC, fine) or folds (USMC) for every model of ``models`` (default TouchFormer, LSTM,
+   MTCNN and the logistic-regression reference classifier).
+2. Missing modality (USMC): the Table-1 USMC models tested with each modality removed (stream set missing
+   at test time, as a dropped-out sensor; the models were trained on all four).
+3. Ablation: transformer fusion only / + MAG / + MAG + CER on the three tasks.
+4. Robustness: each modality of each sample is corrupted with probability p, in training and testing, by
+   Gaussian noise of std ``corruption_std`` in units of the per-channel training feature std (so std 1 is
+   noise as strong as the feature's own spread), p = 0.0, 0.1, ..., 1.0, SSMC split of the first seed.
+   The reference classifier reads raw streams, not features, so it is left out of this experiment.
+5. Clean -> fire shift (with ``fire_dir``): TouchFormer and the reference trained on all clean strokes and
+   tested on the fire test part (zero-shot); TouchFormer fine-tuned from the clean checkpoint on the fire
+   training part (its normalisation kept); both trained on fire alone, for scale. Fire is split like SSMC.
+
+Every run's checkpoint lives under ``out_dir/runs/``; a rerun with the same settings resumes or reuses them.
+Writes ``out_dir/REPORT.md``, ``out_dir/results.json`` and PNG figures (confusion matrices, robustness curve,
+t-SNE of test embeddings with and without CER).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+from sklearn.metrics import confusion_matrix, recall_score
+from tqdm.auto import tqdm
+
+from perception.checkpoint import load_checkpoint
+from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ssmc_split, usmc_folds,
+                                validation_split)
+from perception.features import feature_dims
+from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
+from perception.streams import MODALITIES, MODALITY_SYMBOL
+from perception.train import DEVIATIONS, TrainConfig, featurize_records, predict, resolve_device, train
+
+PAPER: dict[str, Any] = {
+    "table1": {  # accuracy %, G-mean; LMTHM, 4 modalities
+        "ssmc": {"ddqn": (92.71, 0.93), "mmusr": (79.7, 0.80), "mmusr_vision": (93.8, 0.94),
+                 "touchformer": (95.19, 0.95)},
+        "usmc": {"lstm": (74.23, 0.73), "dalnet": (46.67, 0.47), "mtcnn": (87.55, 0.88),
+                 "touchformer": (94.38, 0.94)},
+        "fine": {"lstm": (65.75, 0.66), "dalnet": (42.62, 0.43), "mtcnn": (80.21, 0.80),
+                 "touchformer": (89.77, 0.90)},
+    },
+    "missing_modality_usmc": {  # accuracy % with one modality removed
+        "lstm": {"sound": 73.78, "normal": 71.69, "friction": 69.09, "accel": 75.50, "none": 74.23},
+        "mtcnn": {"sound": 83.43, "normal": 83.18, "friction": 84.99, "accel": 87.00, "none": 87.55},
+        "touchformer": {"sound": 87.92, "normal": 88.55, "friction": 89.12, "accel": 89.84, "none": 94.38},
+    },
+    "ablation": {  # accuracy %, SSMC / USMC / fine
+        "touchformer_fusion": {"ssmc": 91.32, "usmc": 90.17, "fine": 83.53},
+        "touchformer_mag": {"ssmc": 93.15, "usmc": 92.56, "fine": 84.88},
+        "touchformer": {"ssmc": 95.19, "usmc": 94.38, "fine": 89.77},
+    },
+    "fishm": {  # TouchFormer on the robot data set, accuracy % without / with environment noise
+        "without_noise": {"ssmc": 91.47, "usmc": 90.26, "fine": 90.05},
+        "with_noise": {"ssmc": 89.54, "usmc": 88.03, "fine": 87.76},
+    },
+    "robustness": "figure only: TouchFormer's accuracy stays above the baselines' for p in 0.0 ... 1.0",
+}
+"""The paper's figures (from /work/shared/reference/paper-facts.md), printed beside ours in REPORT.md."""
+
+MODEL_LABEL = {"touchformer": "TouchFormer", "touchformer_mag": "fusion + MAG (no CER)",
+               "touchformer_fusion": "fusion only", "lstm": "LSTM", "mtcnn": "MTCNN", "reference": "reference (logreg)"}
+TASK_LABEL = {"ssmc": "SSMC", "usmc": "USMC", "fine": "fine-grained"}
+NN_TINY = {
+    "touchformer": (("d_model", 16), ("n_heads", 2), ("n_layers", 1), ("gate_hidden", 8), ("emb_dim", 16)),
+    "lstm": (("hidden", 16), ("n_steps", 16), ("emb_dim", 16)),
+    "mtcnn": (("channels", 8), ("emb_dim", 16)),
+}
+
+
+def _tiny(model: str) -> tuple[tuple[str, Any], ...]:
+    return NN_TINY["touchformer" if model.startswith("touchformer") else model]
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """What :func:`evaluate` runs.
+
+    Attributes:
+        models: Table-1 models (registry names and/or "reference").
+        seeds: split and training seeds for SSMC and fine-grained; USMC uses the first seed's folds.
+        n_folds: USMC folds.
+        ablation: run the fusion-only and +MAG variants too.
+        missing_modality: test the USMC models with each modality removed.
+        robustness_models: models of the robustness curve (empty: skip it).
+        corruption_ratios: p values of the robustness curve.
+        corruption_std: corruption noise std, units of the per-channel training feature std.
+        fine_tune_epochs: epochs of clean -> fire fine-tuning.
+        fine_tune_lr: fine-tuning learning rate.
+        train: training settings shared by every run (model, task and seed are set per run).
+        model_overrides: model name -> config overrides (all TouchFormer variants share "touchformer"'s).
+        tsne: draw the t-SNE figure.
+    """
+
+    models: tuple[str, ...] = ("touchformer", "lstm", "mtcnn", "reference")
+    seeds: tuple[int, ...] = (0, 1, 2)
+    n_folds: int = 5
+    ablation: bool = True
+    missing_modality: bool = True
+    robustness_models: tuple[str, ...] = ("touchformer", "lstm", "mtcnn")
+    corruption_ratios: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(11))
+    corruption_std: float = 1.0
+    fine_tune_epochs: int = 20
+    fine_tune_lr: float = 3e-4
+    train: TrainConfig = field(default_factory=TrainConfig)
+    model_overrides: Mapping[str, tuple[tuple[str, Any], ...]] = field(default_factory=dict)
+    tsne: bool = True
+
+
+def quick_config() -> EvalConfig:
+    """A tiny version for tests and smoke runs: 2 epochs, 1 seed, 2 folds, p in {0, 0.5, 1}, tiny models."""
+    return EvalConfig(seeds=(0,), n_folds=2, corruption_ratios=(0.0, 0.5, 1.0), fine_tune_epochs=2,
+                      train=TrainConfig(epochs=2, batch_size=16, lr=3e-3, num_threads=1),
+                      model_overrides={m: _tiny(m) for m in ("touchformer", "lstm", "mtcnn")})
+
+
+# ----------------------------------------------------------------------------------------------------------
+# metrics
+
+
+def g_mean(y_true: Sequence[int], y_pred: Sequence[int], labels: Iterable[int] | None = None) -> float:
+    """Geometric mean of the per-class recalls over the classes present in ``y_true``; 0 if any is 0.
+
+    Args:
+        y_true, y_pred: class indices.
+        labels: candidate classes (default: those in ``y_true``); classes absent from ``y_true`` have no
+            recall and are skipped.
+    """
+    y_true = np.asarray(y_true)
+    present = sorted(set(y_true.tolist()) & (set(labels) if labels is not None else set(y_true.tolist())))
+    if not present:
+        return float("nan")
+    recalls = recall_score(y_true, np.asarray(y_pred), labels=present, average=None, zero_division=0)
+    if np.any(recalls == 0):
+        return 0.0
+    return float(np.exp(np.mean(np.log(recalls))))
+
+
+def _mean_std(values: Sequence[float]) -> dict[str, float]:
+    v = np.asarray([x for x in values if x == x], dtype=np.float64)
+    return {"mean": float(v.mean()) if v.size else float("nan"), "std": float(v.std()) if v.size else float("nan"),
+            "n": int(v.size)}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# runs
+
+
+@dataclass
+class _Context:
+    data: Dataset
+    out_dir: Path
+    config: EvalConfig
+    features: list
+    summaries: np.ndarray
+    progress: bool
+    provenance: dict[str, Any]
+    cache: dict = field(default_factory=dict)
+
+
+def _train_config(ctx: _Context, model: str, task: str, seed: int, **changes: Any) -> TrainConfig:
+    overrides = ctx.config.model_overrides.get("touchformer" if model.startswith("touchformer") else model, ())
+    return dataclasses.replace(ctx.config.train, model=model, task=task, seed=seed,
+                               model_overrides=tuple(overrides), **changes)
+
+
+def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarray], split_name: str, seed: int,
+         corruption: float = 0.0, records=None, features=None, summaries=None, class_names=None,
+         run_name: str | None = None, train_changes: Mapping[str, Any] | None = None,
+         drops: Sequence[str] = ()) -> dict[str, Any]:
+    """Train ``model`` on ``split[0]`` (validation carved from it) and test on ``split[1]``."""
+    key = (model, task, split_name, seed, corruption, run_name)
+    if key in ctx.cache:
+        return ctx.cache[key]
+    records = ctx.data.records if records is None else records
+    features = ctx.features if features is None else features
+    summaries = ctx.summaries if summaries is None else summaries
+    labels = labels_of(records, task)
+    names = tuple(sorted(set(labels))) if class_names is None else tuple(class_names)
+    y = np.array([names.index(l) for l in labels])
+    train_idx, test_idx = split
+    result: dict[str, Any] = {"model": model, "task": task, "split": split_name, "seed": seed,
+                              "corruption_ratio": corruption, "n_train": int(len(train_idx)),
+                              "n_test": int(len(test_idx))}
+    outputs = {}
+    if model == "reference":
+        clf = ReferenceClassifier(ReferenceConfig(label="instance" if task == "fine" else "category"))
+        clf.pipeline.fit(summaries[train_idx], [labels[i] for i in train_idx])
+        block = summaries.shape[1] // len(MODALITIES)
+        for drop in ("none",) + tuple(drops):
+            x = summaries[test_idx].copy()
+            if drop != "none":
+                j = MODALITIES.index(drop)
+                x[:, j * block:(j + 1) * block] = 0.0  # exactly what a missing stream yields
+            outputs[drop] = np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
+        emb = None
+    else:
+        tr, val = validation_split(records, train_idx, task, seed, ctx.config.train.val_fraction)
+        cfg = _train_config(ctx, model, task, seed, corruption_ratio=corruption,
+                            corruption_std=ctx.config.corruption_std, **dict(train_changes or {}))
+        run_dir = ctx.out_dir / "runs" / (run_name or f"{task}/{model}/{split_name}_p{corruption:.1f}")
+        res = train([records[i] for i in tr], [records[i] for i in val], cfg, run_dir, progress=False,
+                    class_names=names, features_train=[features[i] for i in tr],
+                    features_val=[features[i] for i in val], provenance=ctx.provenance)
+        ckpt = load_checkpoint(res.checkpoint_dir, device=resolve_device(cfg.device))
+        dims = feature_dims(ckpt.feature_config)
+        test_feats = [features[i] for i in test_idx]
+        for drop in ("none",) + tuple(drops):
+            preds = predict(ckpt.model, test_feats, dims, stats=ckpt.norm_stats, device=resolve_device(cfg.device),
+                            corruption_ratio=corruption, corruption_std=ctx.config.corruption_std, seed=seed + 12345,
+                            drop=() if drop == "none" else (drop,))
+            outputs[drop] = preds.pred
+            if drop == "none":
+                emb = preds.embedding
+        result.update(best_epoch=res.best_epoch, best_val_accuracy=res.best_val_accuracy,
+                      checkpoint=str(res.checkpoint_dir), n_val=int(len(val)))
+    y_test = y[test_idx]
+    if len(test_idx) == 0:  # a train-only run (clean model of the fire experiment)
+        result.update(accuracy=float("nan"), g_mean=float("nan"), missing={})
+        result["_y_true"], result["_y_pred"], result["_embedding"], result["_names"] = y_test, y_test, None, names
+        ctx.cache[key] = result
+        return result
+    result["accuracy"] = float(np.mean(outputs["none"] == y_test))
+    result["g_mean"] = g_mean(y_test, outputs["none"], range(len(names)))
+    result["missing"] = {d: float(np.mean(p == y_test)) for d, p in outputs.items() if d != "none"}
+    result["_y_true"], result["_y_pred"], result["_embedding"], result["_names"] = y_test, outputs["none"], emb, names
+    ctx.cache[key] = result
+    return result
+
+
+def _splits(ctx: _Context, task: str) -> list[tuple[str, int, tuple[np.ndarray, np.ndarray]]]:
+    records, cfg = ctx.data.records, ctx.config
+    if task == "ssmc":
+        return [(f"seed{s}", s, ssmc_split(records, s)) for s in cfg.seeds]
+    if task == "fine":
+        return [(f"seed{s}", s, fine_split(records, s)) for s in cfg.seeds]
+    s = cfg.seeds[0]
+    return [(f"seed{s}_fold{f}", s, fold) for f, fold in enumerate(usmc_folds(records, cfg.n_folds, s))]
+
+
+def _public(run: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in run.items() if not k.startswith("_")}
+
+
+def _summary(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    return {"accuracy": _mean_std([r["accuracy"] for r in runs]), "g_mean": _mean_std([r["g_mean"] for r in runs]),
+            "runs": [_public(r) for r in runs]}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# provenance, plots, report
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parents[1],
+                             capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() or None if out.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _plot_confusion(path: Path, y_true: np.ndarray, y_pred: np.ndarray, names: Sequence[str], title: str) -> None:
+    import matplotlib.pyplot as plt
+
+    cm = confusion_matrix(y_true, y_pred, labels=range(len(names))).astype(np.float64)
+    cm = cm / np.maximum(cm.sum(axis=1, keepdims=True), 1)
+    k = len(names)
+    fig, ax = plt.subplots(figsize=(min(2 + 0.45 * k, 14), min(1.6 + 0.45 * k, 13)))
+    im = ax.imshow(cm, vmin=0, vmax=1, cmap="Blues")
+    if k <= 30:
+        ax.set_xticks(range(k), names, rotation=60, ha="right", fontsize=7)
+        ax.set_yticks(range(k), names, fontsize=7)
+    if k <= 12:
+        for i in range(k):
+            for j in range(k):
+                ax.text(j, i, f"{cm[i, j]:.2f}", ha="center", va="center", fontsize=7,
+                        color="white" if cm[i, j] > 0.5 else "black")
+    ax.set_xlabel("predicted")
+    ax.set_ylabel("true")
+    ax.set_title(title, fontsize=9)
+    fig.colorbar(im, ax=ax, fraction=0.046, label="recall")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_robustness(path: Path, curves: Mapping[str, Mapping[str, float]]) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    for model, curve in curves.items():
+        ps = sorted(curve, key=float)
+        ax.plot([float(p) for p in ps], [100 * curve[p] for p in ps], marker="o", label=MODEL_LABEL.get(model, model))
+    ax.set_xlabel("corruption ratio p")
+    ax.set_ylabel("SSMC test accuracy [%]")
+    ax.set_title("Gaussian noise on random modalities (train and test)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_tsne(path: Path, panels: Sequence[tuple[str, np.ndarray, np.ndarray]], seed: int) -> None:
+    import matplotlib.pyplot as plt
+    from sklearn.manifold import TSNE
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
+    for ax, (title, emb, y) in zip(axes[0], panels):
+        n = emb.shape[0]
+        if n >= 5:
+            xy = TSNE(n_components=2, perplexity=float(max(2.0, min(30.0, (n - 1) / 3.0))), init="pca",
+                      random_state=seed).fit_transform(emb)
+            ax.scatter(xy[:, 0], xy[:, 1], c=y, cmap="tab20" if y.max() >= 10 else "tab10", s=10)
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _pct(stat: Mapping[str, float]) -> str:
+    return "-" if stat["mean"] != stat["mean"] else f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
+
+
+def _g(stat: Mapping[str, float]) -> str:
+    return "-" if stat["mean"] != stat["mean"] else f"{stat['mean']:.2f} ± {stat['std']:.2f}"
+
+
+def _write_report(path: Path, results: Mapping[str, Any]) -> None:
+    prov, cfg = results["provenance"], results["config"]
+    lines = ["# TouchFormer evaluation on our data", "",
+             "Our numbers are mean ± std over seeds (SSMC, fine-grained) or folds (USMC); the paper's are on the "
+             "LMT haptic database (LMTHM) unless said otherwise, so they set the scale, not a target to match "
+             "on a different data set.", "",
+             "## Provenance", "",
+             f"- command: `{prov['command']}`",
+             f"- git commit: `{prov['git_commit']}`",
+             f"- data: `{prov['data_dir']}` (env {prov['data_env']}, {prov['n_strokes']} strokes, "
+             f"{prov['n_categories']} categories, {prov['n_instances']} instances), manifest sha256 "
+             f"`{prov['data_manifest_sha256']}`",
+             *([f"- fire data: `{prov['fire_dir']}`, manifest sha256 `{prov['fire_manifest_sha256']}`"]
+               if prov.get("fire_dir") else []),
+             f"- seeds {cfg['seeds']}, USMC {cfg['n_folds']} folds, {cfg['train']['epochs']} epochs, batch "
+             f"{cfg['train']['batch_size']}, {cfg['train']['optimizer']} lr {cfg['train']['lr']} wd "
+             f"{cfg['train']['weight_decay']} ({cfg['train']['schedule']}), device {prov['device']}, quick={prov['quick']}",
+             f"- wall time {results['seconds']:.0f} s", ""]
+
+    lines += ["## Table 1: material classification", "",
+              "| task | model | accuracy [%] (ours) | G-mean (ours) | paper accuracy [%] | paper G-mean |",
+              "|---|---|---|---|---|---|"]
+    for task, per_model in results["table1"].items():
+        for model, summ in per_model.items():
+            paper = PAPER["table1"][task].get(model)
+            lines.append(f"| {TASK_LABEL[task]} | {MODEL_LABEL.get(model, model)} | {_pct(summ['accuracy'])} | "
+                         f"{_g(summ['g_mean'])} | {paper[0] if paper else '-'} | {paper[1] if paper else '-'} |")
+        for model, paper in PAPER["table1"][task].items():
+            if model not in per_model:
+                lines.append(f"| {TASK_LABEL[task]} | {model} (paper only) | - | - | {paper[0]} | {paper[1]} |")
+    lines.append("")
+
+    if results.get("missing_modality"):
+        lines += ["## Missing modality (USMC, modality removed at test time)", "",
+                  "| model | " + " | ".join(f"no {MODALITY_SYMBOL[m]}" for m in MODALITIES) + " | all four |",
+                  "|---|" + "---|" * (len(MODALITIES) + 1)]
+        for model, row in results["missing_modality"].items():
+            paper = PAPER["missing_modality_usmc"].get(model, {})
+            cells = [f"{_pct(row[m])} (paper {paper[m]})" if m in paper else _pct(row[m]) for m in MODALITIES]
+            cells.append(f"{_pct(row['none'])} (paper {paper['none']})" if paper else _pct(row["none"]))
+            lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(cells) + " |")
+        lines.append("")
+
+    if results.get("ablation"):
+        lines += ["## Ablation (accuracy [%], ours (paper))", "", "| configuration | SSMC | USMC | fine-grained |",
+                  "|---|---|---|---|"]
+        for model, row in results["ablation"].items():
+            lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
+                f"{_pct(row[t])} ({PAPER['ablation'][model][t]})" for t in ("ssmc", "usmc", "fine")) + " |")
+        lines.append("")
+
+    if results.get("robustness"):
+        rob = results["robustness"]
+        ps = sorted({p for curve in rob["curves"].values() for p in curve}, key=float)
+        lines += ["## Robustness to corrupted modalities (SSMC accuracy [%])", "",
+                  f"Each modality of each sample gets N(0, {rob['corruption_std']}²) noise (units of the per-channel "
+                  "training feature std) with probability p, in training and testing. Figure: `robustness.png`.", "",
+                  "| model | " + " | ".join(f"p={p}" for p in ps) + " |", "|---|" + "---|" * len(ps)]
+        for model, curve in rob["curves"].items():
+            lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
+                f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
+        lines += ["", f"Paper: {PAPER['robustness']}.", ""]
+
+    if results.get("fire"):
+        fire = results["fire"]
+        lines += ["## Clean -> fire shift (category accuracy on the fire test part)", "",
+                  "| model | accuracy [%] | G-mean | combustible accuracy [%] |", "|---|---|---|---|"]
+        for row in fire["rows"]:
+            lines.append(f"| {row['label']} | {100 * row['accuracy']:.2f} | {row['g_mean']:.2f} | "
+                         f"{100 * row['combustible_accuracy']:.2f} |")
+        lines += ["", f"Paper (FISHM robot data, TouchFormer, SSMC): {PAPER['fishm']['without_noise']['ssmc']} % without, "
+                      f"{PAPER['fishm']['with_noise']['ssmc']} % with environment noise.", ""]
+
+    lines += ["## Deviations from the paper", ""]
+    lines += [f"- **{k}**: {v}" for k, v in results["deviations"].items()]
+    lines += ["", "## Figures", ""] + [f"- `{f}`" for f in results["figures"]] + [""]
+    path.write_text("\n".join(lines), encoding="utf-8")
+
+
+EVAL_DEVIATIONS: dict[str, str] = {
+    "ssmc_split": ("random 7:3 split by stroke, stratified by category, like the paper; strokes of one physical "
+                   "object can fall on both sides, which favours SSMC over USMC."),
+    "usmc_seeds": "USMC folds of the first seed only (k folds, as the paper); SSMC and fine-grained over all seeds.",
+    "missing_modality": "modality removed at test time from models trained with all four (the paper does not say).",
+    "robustness_noise": ("noise std in units of the per-channel training feature std; the paper gives no "
+                         "intensity. SSMC split of the first seed; the reference classifier is not included."),
+    "fire_fine_tune": "fine-tuning keeps the clean model's feature normalisation and class list.",
+    "baselines": ("LSTM and MTCNN are our re-implementations (perception/baselines.py); DDQN, DALNet and MMUSR "
+                  "are not rerun."),
+}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the evaluation
+
+
+def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,
+             models: Sequence[str] | None = None, seeds: Sequence[int] | None = None,
+             fire_dir: str | os.PathLike | None = None, config: EvalConfig | None = None, device: str | None = None,
+             progress: bool = True, command: str | None = None) -> dict[str, Any]:
+    """Run the paper's experiments on our data and write the report.
+
+    Args:
+        data_dir: clean data set folder.
+        out_dir: report folder (REPORT.md, results.json, PNGs, runs/).
+        quick: use :func:`quick_config` (tests, smoke runs).
+        models: Table-1 models (default: the config's).
+        seeds: seeds (default: the config's).
+        fire_dir: optional data set recorded in the fire scene, for the clean -> fire experiment.
+        config: full settings (default :class:`EvalConfig` or the quick one).
+        device: "auto", "cpu" or "cuda" (default: the config's).
+        progress: tqdm bars.
+        command: command line for the provenance record (default: ``sys.argv``).
+
+    Returns:
+        The results dict also written to ``results.json``.
+    """
+    t_start = time.perf_counter()
+    cfg = config or (quick_config() if quick else EvalConfig())
+    if models is not None:
+        cfg = dataclasses.replace(cfg, models=tuple(models))
+    if seeds is not None:
+        cfg = dataclasses.replace(cfg, seeds=tuple(int(s) for s in seeds))
+    if device is not None:
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, device=device))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    data = load_dataset(data_dir)
+    records = data.records
+    provenance = {"command": command if command is not None else " ".join(sys.argv), "git_commit": _git_commit(),
+                  "data_dir": str(data_dir), "data_manifest_sha256": data.manifest_sha256, "data_env": data.env,
+                  "n_strokes": len(records), "n_categories": len({r.category for r in records}),
+                  "n_instances": len({r.instance for r in records}), "seeds": list(cfg.seeds), "quick": quick,
+                  "device": str(resolve_device(cfg.train.device)), "python": sys.version.split()[0]}
+    features = featurize_records(records, cfg.train.feature_config, progress, "featurize clean")
+    summaries = np.stack([summary_features(r) for r in records])
+    ctx = _Context(data=data, out_dir=out_dir, config=cfg, features=features, summaries=summaries, progress=progress,
+                   provenance={k: provenance[k] for k in ("command", "git_commit", "data_manifest_sha256")})
+    figures: list[str] = []
+    results: dict[str, Any] = {"paper": PAPER, "provenance": provenance,
+                               "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
+                               "deviations": {**DEVIATIONS, **EVAL_DEVIATIONS}}
+
+    nn_models = [m for m in cfg.models if m != "reference"]
+    ablation = ["touchformer_fusion", "touchformer_mag", "touchformer"] if cfg.ablation else []
+    jobs = []
+    for task in ("ssmc", "usmc", "fine"):
+        for split_name, seed, split in _splits(ctx, task):
+            for model in dict.fromkeys(list(cfg.models) + ablation):
+                jobs.append((model, task, split_name, seed, split))
+    rob_jobs = [(m, p) for p in cfg.corruption_ratios for m in cfg.robustness_models]
+    bar = tqdm(total=len(jobs) + len(rob_jobs), desc="evaluate", disable=not progress)
+
+    per: dict[tuple[str, str], list] = {}
+    for model, task, split_name, seed, split in jobs:
+        bar.set_postfix_str(f"{task} {model} {split_name}")
+        drops = MODALITIES if (task == "usmc" and cfg.missing_modality and model in cfg.models) else ()
+        per.setdefault((task, model), []).append(_run(ctx, model, task, split, split_name, seed, drops=drops))
+        bar.update()
+    results["table1"] = {t: {m: _summary(per[(t, m)]) for m in cfg.models} for t in ("ssmc", "usmc", "fine")}
+    if cfg.missing_modality:
+        results["missing_modality"] = {
+            m: {**{d: _mean_std([r["missing"][d] for r in per[("usmc", m)]]) for d in MODALITIES},
+                "none": _mean_std([r["accuracy"] for r in per[("usmc", m)]])} for m in cfg.models}
+    if ablation:
+        results["ablation"] = {m: {t: _mean_std([r["accuracy"] for r in per[(t, m)]]) for t in ("ssmc", "usmc", "fine")}
+                               for m in ablation}
+
+    # confusion matrices: each Table-1 model on SSMC (first seed), TouchFormer on USMC (all folds) and fine
+    for model in cfg.models:
+        run = per[("ssmc", model)][0]
+        name = f"confusion_ssmc_{model}.png"
+        _plot_confusion(out_dir / name, run["_y_true"], run["_y_pred"], run["_names"],
+                        f"{MODEL_LABEL.get(model, model)}, SSMC {run['split']}")
+        figures.append(name)
+    tf = "touchformer"
+    if ("usmc", tf) in per:
+        runs = per[("usmc", tf)]
+        _plot_confusion(out_dir / "confusion_usmc_touchformer.png", np.concatenate([r["_y_true"] for r in runs]),
+                        np.concatenate([r["_y_pred"] for r in runs]), runs[0]["_names"], "TouchFormer, USMC, all folds")
+        run = per[("fine", tf)][0]
+        _plot_confusion(out_dir / "confusion_fine_touchformer.png", run["_y_true"], run["_y_pred"], run["_names"],
+                        f"TouchFormer, fine-grained {run['split']}")
+        figures += ["confusion_usmc_touchformer.png", "confusion_fine_touchformer.png"]
+
+    if cfg.tsne and ("ssmc", "touchformer") in per and ("ssmc", "touchformer_mag") in per:
+        panels = []
+        for task in ("ssmc", "fine"):
+            for model, title in (("touchformer_mag", "without CER"), ("touchformer", "with CER")):
+                run = per[(task, model)][0]
+                panels.append((f"{TASK_LABEL[task]}: {title}", run["_embedding"], run["_y_true"]))
+        _plot_tsne(out_dir / "tsne.png", panels, cfg.seeds[0])
+        figures.append("tsne.png")
+
+    if rob_jobs:
+        s = cfg.seeds[0]
+        split = ssmc_split(records, s)
+        curves: dict[str, dict[str, float]] = {}
+        for model, p in rob_jobs:
+            bar.set_postfix_str(f"robustness {model} p={p}")
+            run = _run(ctx, model, "ssmc", split, f"seed{s}", s, corruption=float(p))
+            curves.setdefault(model, {})[repr(float(p))] = run["accuracy"]
+            bar.update()
+        results["robustness"] = {"corruption_std": cfg.corruption_std, "curves": curves}
+        _plot_robustness(out_dir / "robustness.png", curves)
+        figures.append("robustness.png")
+    bar.close()
+
+    if fire_dir is not None:
+        results["fire"] = _fire_experiment(ctx, Path(fire_dir), provenance)
+    results["figures"] = figures
+    results["seconds"] = time.perf_counter() - t_start
+    (out_dir / "results.json").write_text(json.dumps(results, indent=2, default=_json_default), encoding="utf-8")
+    _write_report(out_dir / "REPORT.md", results)
+    return results
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def _fire_experiment(ctx: _Context, fire_dir: Path, provenance: dict[str, Any]) -> dict[str, Any]:
+    cfg = ctx.config
+    fire = load_dataset(fire_dir)
+    provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=fire.manifest_sha256)
+    clean_records = ctx.data.records
+    names = tuple(sorted({r.category for r in clean_records}))
+    unknown = sorted({r.category for r in fire.records} - set(names))
+    if unknown:
+        raise ValueError(f"{fire_dir}: fire categories {unknown} do not occur in the clean data")
+    combustible = {r.category: r.combustible for r in clean_records}
+    fire_feats = featurize_records(fire.records, cfg.train.feature_config, ctx.progress, "featurize fire")
+    fire_summ = np.stack([summary_features(r) for r in fire.records])
+    s = cfg.seeds[0]
+    fire_train, fire_test = ssmc_split(fire.records, s)
+    all_clean = (np.arange(len(clean_records)), np.zeros(0, dtype=np.int64))
+    fire_kw = dict(records=fire.records, features=fire_feats, summaries=fire_summ, class_names=names)
+    rows = []
+
+    def score(label: str, model: str, run_name: str, ckpt_dir: str | None, pred: np.ndarray | None = None) -> None:
+        y = np.array([names.index(fire.records[i].category) for i in fire_test])
+        if pred is None:
+            ckpt = load_checkpoint(ckpt_dir, device=resolve_device(cfg.train.device))
+            pred = predict(ckpt.model, [fire_feats[i] for i in fire_test], feature_dims(ckpt.feature_config),
+                           stats=ckpt.norm_stats, device=resolve_device(cfg.train.device)).pred
+        comb_true = np.array([combustible[names[k]] for k in y])
+        comb_pred = np.array([combustible[names[k]] for k in pred])
+        rows.append({"label": label, "model": model, "run": run_name, "accuracy": float(np.mean(pred == y)),
+                     "g_mean": g_mean(y, pred, range(len(names))),
+                     "combustible_accuracy": float(np.mean(comb_true == comb_pred)), "n_test": int(len(fire_test))})
+
+    # trained on all clean strokes (validation carved from them), tested on the fire test part
+    clean = _run(ctx, "touchformer", "ssmc", all_clean, "all", s, run_name="fire/clean_touchformer", class_names=names)
+    score("TouchFormer, clean only (zero-shot on fire)", "touchformer", "fire/clean_touchformer", clean["checkpoint"])
+    ref = ReferenceClassifier(ReferenceConfig()).pipeline.fit(ctx.summaries, [r.category for r in clean_records])
+    score("reference, clean only (zero-shot on fire)", "reference", "", None,
+          np.array([names.index(str(p)) for p in ref.predict(fire_summ[fire_test])]))
+    # fine-tuned from the clean checkpoint on the fire training part
+    tuned = _run(ctx, "touchformer", "ssmc", (fire_train, fire_test), "fire", s, run_name="fire/finetuned_touchformer",
+                 train_changes={"init_checkpoint": clean["checkpoint"], "epochs": cfg.fine_tune_epochs,
+                                "lr": cfg.fine_tune_lr}, **fire_kw)
+    score("TouchFormer, clean + fine-tuned on fire", "touchformer", "fire/finetuned_touchformer", tuned["checkpoint"])
+    scratch = _run(ctx, "touchformer", "ssmc", (fire_train, fire_test), "fire", s, run_name="fire/scratch_touchformer",
+                   **fire_kw)
+    score("TouchFormer, fire only", "touchformer", "fire/scratch_touchformer", scratch["checkpoint"])
+    ref_fire = _run(ctx, "reference", "ssmc", (fire_train, fire_test), "fire", s, run_name="fire/reference", **fire_kw)
+    score("reference, fire only", "reference", "", None, ref_fire["_y_pred"])
+    return {"split": f"ssmc seed{s}", "n_fire_train": int(len(fire_train)), "n_fire_test": int(len(fire_test)),
+            "rows": rows}
+
+
+def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,
+                     fire_dir: str | os.PathLike | None = None, device: str = "auto",
+                     seeds: Sequence[int] | None = None, models: Sequence[str] | None = None,
+                     command: str = "", progress: bool = True) -> dict[str, Any]:
+    """``robotdemo evaluate``: run :func:`evaluate`, return a short summary (report path, headline accuracies)."""
+    results = evaluate(data_dir, out_dir, quick=quick, models=models, seeds=seeds, fire_dir=fire_dir, device=device,
+                       progress=progress, command=command or None)
+    headline = {task: {m: s["accuracy"]["mean"] for m, s in per.items()} for task, per in results["table1"].items()}
+    return {"report": str(Path(out_dir) / "REPORT.md"), "results": str(Path(out_dir) / "results.json"),
+            "accuracy": headline, "seconds": results["seconds"]}

@@ -1,0 +1,73 @@
+"""Evaluation protocol (perception.evaluate): metrics and the quick end-to-end report."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from perception.dataset import write_dataset
+from perception.evaluate import PAPER, evaluate, g_mean
+from tests.test_dataset import make_material_strokes
+
+
+def test_g_mean_hand_example():
+    y_true = [0, 0, 1, 1, 2, 2]
+    y_pred = [0, 1, 1, 1, 2, 0]  # recalls 0.5, 1.0, 0.5
+    assert g_mean(y_true, y_pred) == pytest.approx(0.25 ** (1 / 3))
+    assert g_mean(y_true, y_true) == pytest.approx(1.0)
+    assert g_mean(y_true, [0, 0, 0, 0, 2, 2]) == 0.0  # class 1 never recalled
+    # a class absent from y_true has no recall and is skipped
+    assert g_mean([0, 0, 1, 1], [0, 2, 1, 1], labels=range(3)) == pytest.approx(0.5 ** 0.5)
+
+
+def test_quick_evaluation_writes_report(tmp_path):
+    torch.set_num_threads(1)
+    clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
+    fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
+                                 env="fire")
+    write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
+    write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
+    out = tmp_path / "report"
+    results = evaluate(tmp_path / "clean", out, quick=True, fire_dir=tmp_path / "fire", progress=False,
+                       command="robotdemo evaluate --quick")
+
+    for name in ("REPORT.md", "results.json", "robustness.png", "tsne.png", "confusion_ssmc_touchformer.png",
+                 "confusion_usmc_touchformer.png", "confusion_fine_touchformer.png"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["provenance"]["data_manifest_sha256"] == results["provenance"]["data_manifest_sha256"]
+    assert saved["provenance"]["command"] == "robotdemo evaluate --quick"
+    for task in ("ssmc", "usmc", "fine"):
+        for model in ("touchformer", "lstm", "mtcnn", "reference"):
+            acc = saved["table1"][task][model]["accuracy"]
+            assert 0.0 <= acc["mean"] <= 1.0
+        assert len(saved["table1"][task]["touchformer"]["runs"]) == (2 if task == "usmc" else 1)
+    assert set(saved["missing_modality"]["touchformer"]) == {"sound", "normal", "friction", "accel", "none"}
+    assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer"}
+    assert set(saved["robustness"]["curves"]["touchformer"]) == {"0.0", "0.5", "1.0"}
+    assert len(saved["fire"]["rows"]) == 5
+    assert all(0.0 <= row["accuracy"] <= 1.0 for row in saved["fire"]["rows"])
+    # the reference classifier is a sanity floor that the toy data lets it reach
+    assert saved["table1"]["ssmc"]["reference"]["accuracy"]["mean"] > 0.6
+    report = (out / "REPORT.md").read_text()
+    assert str(PAPER["table1"]["ssmc"]["touchformer"][0]) in report and "Deviations" in report
+    assert results["provenance"]["data_manifest_sha256"] in report
+    # USMC test instances never appear in the training part of their fold
+    for run in saved["table1"]["usmc"]["touchformer"]["runs"]:
+        assert run["n_train"] + run["n_test"] == len(clean)
+    assert np.isfinite(saved["seconds"])
+
+
+def test_inference_benchmark_reports_latency(tmp_path):
+    from perception.bench_inference import run_inference_benchmark
+
+    result = run_inference_benchmark("mtcnn", n=5, batch=4, duration_s=0.3)
+    assert result["threads"] == 1 and result["model"] == "mtcnn"
+    b1 = result["batch1"]
+    assert 0 < b1["median_ms"] <= b1["p95_ms"] and b1["featurize_median_ms"] > 0
+    assert result["batch4"]["strokes_per_s"] > 0 and isinstance(result["meets_target"], bool)
+    with pytest.raises(KeyError, match="neither"):
+        run_inference_benchmark("no-such-model", n=1)

@@ -1,0 +1,145 @@
+"""Training loop (perception.train): learns, resumes to identical weights, saves loadable checkpoints."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import safetensors.torch
+import torch
+
+from perception.checkpoint import load_checkpoint
+from perception.dataset import labels_of, ssmc_split, validation_split, write_dataset
+from perception.features import collate, feature_dims, featurize
+from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, featurize_records, predict, train,
+                              train_command)
+from tests.test_dataset import make_material_strokes
+
+TINY = {
+    "touchformer": (("d_model", 16), ("n_heads", 2), ("n_layers", 1), ("gate_hidden", 8), ("emb_dim", 16)),
+    "lstm": (("hidden", 16), ("n_steps", 16), ("emb_dim", 16)),
+    "mtcnn": (("channels", 8), ("emb_dim", 16)),
+}
+
+
+@pytest.fixture(scope="module")
+def toy():
+    """Split and featurized toy materials (3 categories, chance 1/3)."""
+    torch.set_num_threads(1)
+    recs = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=4, duration_s=0.3)
+    train_idx, test_idx = ssmc_split(recs, seed=0)
+    tr, val = validation_split(recs, train_idx, "ssmc", seed=0)
+    cfg = TrainConfig().feature_config
+    feats = featurize_records(recs, cfg)
+    pick = lambda idx: [recs[i] for i in idx]  # noqa: E731
+    return {"recs": recs, "tr": tr, "val": val, "test": test_idx, "feats": feats, "pick": pick}
+
+
+def _config(model="touchformer", **changes):
+    base = TrainConfig(model=model, epochs=6, batch_size=16, lr=3e-3, device="cpu", num_threads=1,
+                       model_overrides=TINY["touchformer" if model.startswith("touchformer") else model])
+    return dataclasses.replace(base, **changes)
+
+
+def _fit(toy, config, out_dir, **kwargs):
+    f = toy["feats"]
+    return train(toy["pick"](toy["tr"]), toy["pick"](toy["val"]), config, out_dir, progress=False,
+                 features_train=[f[i] for i in toy["tr"]], features_val=[f[i] for i in toy["val"]], **kwargs)
+
+
+def _test_accuracy(toy, checkpoint_dir):
+    ckpt = load_checkpoint(checkpoint_dir)
+    preds = predict(ckpt.model, [toy["feats"][i] for i in toy["test"]], feature_dims(ckpt.feature_config),
+                    stats=ckpt.norm_stats)
+    y = [ckpt.class_names.index(l) for l in labels_of(toy["pick"](toy["test"]), "ssmc")]
+    return float(np.mean(preds.pred == np.array(y)))
+
+
+@pytest.mark.parametrize("model", ["touchformer", "lstm", "mtcnn"])
+def test_training_beats_chance_on_held_out_strokes(toy, tmp_path, model):
+    result = _fit(toy, _config(model), tmp_path / model)
+    assert 1 <= result.best_epoch <= 6 and len(result.history) == 6
+    assert result.history[-1]["train_loss"] < result.history[0]["train_loss"]
+    assert _test_accuracy(toy, result.checkpoint_dir) >= 0.6  # chance is 1/3
+
+
+def test_resume_gives_identical_weights(toy, tmp_path):
+    config = _config(epochs=3)
+    full = _fit(toy, config, tmp_path / "full")
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_after_two(row):
+        if row["epoch"] == 2:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        _fit(toy, config, tmp_path / "cut", on_epoch_end=stop_after_two)
+    resumed = _fit(toy, config, tmp_path / "cut")
+    assert resumed.resumed_from_epoch == 2 and full.resumed_from_epoch == 0
+    assert resumed.best_epoch == full.best_epoch
+    strip = lambda h: [{k: v for k, v in row.items() if k != "seconds"} for row in h]  # noqa: E731
+    assert strip(resumed.history) == strip(full.history)
+    for rel in ("resume/state.safetensors", "checkpoint/model.safetensors"):
+        a = safetensors.torch.load_file(str(tmp_path / "full" / rel))
+        b = safetensors.torch.load_file(str(tmp_path / "cut" / rel))
+        assert a.keys() == b.keys()
+        assert all(torch.equal(a[k], b[k]) for k in a), rel
+    # a finished run is not retrained
+    again = _fit(toy, config, tmp_path / "full")
+    assert again.resumed_from_epoch == 3 and again.best_epoch == full.best_epoch
+    # a resume folder from another config is refused
+    with pytest.raises(TrainError, match="another config"):
+        _fit(toy, dataclasses.replace(config, lr=1e-2), tmp_path / "full")
+
+
+def test_checkpoint_records_provenance(toy, tmp_path):
+    result = _fit(toy, _config(epochs=1), tmp_path / "run", provenance={"command": "robotdemo train --x"})
+    ckpt = load_checkpoint(result.checkpoint_dir)
+    assert ckpt.model_name == "touchformer" and ckpt.class_names == ("cat0", "cat1", "cat2")
+    assert ckpt.meta["command"] == "robotdemo train --x" and ckpt.meta["seed"] == 0
+    assert TrainConfig.from_dict(ckpt.meta["train_config"]) == _config(epochs=1)
+    assert json.loads((tmp_path / "run" / "train_result.json").read_text())["best_epoch"] == 1
+
+
+def test_unknown_validation_label_is_refused(toy, tmp_path):
+    with pytest.raises(TrainError, match="not among"):
+        _fit(toy, _config(epochs=1), tmp_path / "x", class_names=("cat0", "cat1"))
+
+
+def test_corruption_and_schedule():
+    recs = make_material_strokes(1, n_categories=2, n_instances=1, n_objects=1, n_strokes=3, duration_s=0.2)
+    cfg = TrainConfig().feature_config
+    batch = collate([featurize(r, cfg) for r in recs], feature_dims(cfg))
+    gen = torch.Generator().manual_seed(0)
+    assert corrupt_batch(batch, 0.0, 1.0, gen) is batch
+    hit = corrupt_batch(batch, 1.0, 1.0, gen)
+    for m, x in hit.x.items():
+        valid = ~batch.padding[m]
+        assert not torch.equal(x[valid], batch.x[m][valid])
+        assert torch.all(x[batch.padding[m]] == 0)
+    assert cosine_lr(1e-3, 0, 100) == pytest.approx(1e-3)
+    assert cosine_lr(1e-3, 50, 100) == pytest.approx(5e-4)
+    assert cosine_lr(1e-3, 100, 100) == pytest.approx(0.0)
+
+
+def test_config_validation_and_round_trip():
+    with pytest.raises(ValueError, match="unknown model"):
+        TrainConfig(model="nope")
+    with pytest.raises(ValueError, match="task"):
+        TrainConfig(task="xyz")
+    cfg = TrainConfig(model="mtcnn", task="fine", model_overrides=(("dilations", (1, 2)),))
+    assert TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+
+
+def test_train_command_usmc(tmp_path):
+    recs = make_material_strokes(2, n_categories=2, n_instances=2, n_objects=2, n_strokes=2, duration_s=0.2)
+    write_dataset(tmp_path / "ds", recs, env="clean", seed=2)
+    metrics = train_command(tmp_path / "ds", tmp_path / "run", _config(task="usmc", epochs=1), fold=1, n_folds=2,
+                            command="robotdemo train", progress=False)
+    assert metrics["n_train"] + metrics["n_val"] + metrics["n_test"] == len(recs)
+    assert 0.0 <= metrics["test_accuracy"] <= 1.0 and len(metrics["data_manifest_sha256"]) == 64
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["fold"] == 1
