@@ -24,6 +24,8 @@ Typical use::
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -138,6 +140,14 @@ def filterbank(freqs_hz: np.ndarray, n_bands: int, fmin_hz: float, fmax_hz: floa
     return np.clip(np.minimum(rising, falling), 0.0, None)
 
 
+@functools.lru_cache(maxsize=32)
+def _cached_filterbank(n_win: int, rate_hz: float, n_bands: int, fmin_hz: float, fmax_hz: float, mel: bool) -> np.ndarray:
+    """The filterbank for an STFT of ``n_win`` samples at ``rate_hz`` (built once per setting, read-only)."""
+    weights = filterbank(np.fft.rfftfreq(n_win, 1.0 / rate_hz), n_bands, fmin_hz, fmax_hz, mel)
+    weights.setflags(write=False)
+    return weights
+
+
 def _frame_params(window_s: float, hop_s: float, rate_hz: float) -> tuple[int, int]:
     n_win = max(2, int(round(window_s * rate_hz)))
     hop = max(1, int(round(hop_s * rate_hz)))
@@ -163,7 +173,7 @@ def spectral_features(stream: Stream, config: SpectralConfig) -> np.ndarray:
     freqs, _, zxx = scipy.signal.stft(x, fs=rate, window="hann", nperseg=n_win, noverlap=n_win - hop,
                                       boundary=None, padded=False, axis=-1)  # zxx (C, F, N)
     power = (np.abs(zxx) ** 2).sum(axis=0)  # (F, N)
-    weights = filterbank(freqs, config.n_bands, config.fmin_hz, min(config.fmax_hz, rate / 2.0), config.mel)
+    weights = _cached_filterbank(n_win, rate, config.n_bands, config.fmin_hz, min(config.fmax_hz, rate / 2.0), config.mel)
     log_bands = np.log(weights @ power + _LOG_FLOOR)  # (n_bands, N)
     if config.n_coeffs > 0:
         log_bands = scipy.fft.dct(log_bands, type=2, norm="ortho", axis=0)[: config.n_coeffs]
