@@ -80,8 +80,8 @@ class TaxelConfig:
         hop_s: hop between frames, seconds.
     """
 
-    window_s: float = 0.1
-    hop_s: float = 0.05
+    window_s: float = 0.2
+    hop_s: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -89,11 +89,11 @@ class FeatureConfig:
     """Front-end settings for the four modalities (saved with every checkpoint)."""
 
     sound: SpectralConfig = field(default_factory=lambda: SpectralConfig(
-        window_s=0.04644, hop_s=0.02322, n_bands=40, fmin_hz=50.0, fmax_hz=16_000.0, mel=True, n_coeffs=24))
+        window_s=0.09288, hop_s=0.04644, n_bands=40, fmin_hz=50.0, fmax_hz=16_000.0, mel=True, n_coeffs=24))
     normal: TaxelConfig = field(default_factory=TaxelConfig)
     friction: TaxelConfig = field(default_factory=TaxelConfig)
     accel: SpectralConfig = field(default_factory=lambda: SpectralConfig(
-        window_s=0.128, hop_s=0.064, n_bands=16, fmin_hz=2.0, fmax_hz=250.0, mel=False, n_coeffs=0))
+        window_s=0.256, hop_s=0.128, n_bands=16, fmin_hz=2.0, fmax_hz=250.0, mel=False, n_coeffs=0))
 
 
 def feature_dims(config: FeatureConfig) -> dict[str, int]:
