@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 from typing import Callable, Sequence
 
 from robotdemo.errors import RobotDemoError
@@ -79,6 +80,17 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from robotdemo.demo import DEFAULT_CHECKPOINT, DemoConfig, run_demo
+
+    config = DemoConfig(n_objects=args.objects, seed=args.seed, environment=args.env,
+                        checkpoint=Path(args.checkpoint) if args.checkpoint else DEFAULT_CHECKPOINT,
+                        report_path=Path(args.report) if args.report else None, meshcat=args.meshcat,
+                        meshcat_host=args.meshcat_host, record_path=Path(args.record) if args.record else None)
+    run_demo(config)
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "ik":
         from robotdemo.benchmarks.ik_bench import run_ik_benchmark
@@ -89,6 +101,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     elif args.what == "inference":
         from perception.bench_inference import run_inference_benchmark
         result = run_inference_benchmark(args.checkpoint or "touchformer", n=args.n or 200)
+    elif args.what == "demo":
+        from robotdemo.demo import DEFAULT_CHECKPOINT, run_demo_bench
+        result = run_demo_bench(seeds=args.seeds, n_objects=args.objects, environment="fire",
+                                checkpoint=Path(args.checkpoint) if args.checkpoint else DEFAULT_CHECKPOINT,
+                                first_seed=args.seed)
     elif args.what == "emulation":
         from robotdemo.benchmarks.emulation_bench import run_emulation_benchmark
         result = run_emulation_benchmark(n_strokes=args.n or 6, seed=args.seed)
@@ -120,13 +137,17 @@ def build_parser() -> argparse.ArgumentParser:
     scene.add_argument("--json", action="store_true")
     scene.set_defaults(func=_cmd_scene)
 
-    demo = sub.add_parser("demo", help="the headless demo (for now: builds the scene and prints it)")
+    demo = sub.add_parser("demo", help="sort the objects by touch (headless unless --meshcat or --record)")
     demo.add_argument("--objects", type=int, default=6)
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--seconds", type=float, default=1.0)
-    demo.add_argument("--gui", action="store_true")
-    demo.add_argument("--json", action="store_true")
-    demo.set_defaults(func=_cmd_scene)
+    demo.add_argument("--env", choices=["clean", "fire"], default="fire", help="sensor environment")
+    demo.add_argument("--checkpoint", default=None, help="classifier checkpoint folder "
+                      "(default robotdemo/checkpoints/touchformer_fire)")
+    demo.add_argument("--report", default=None, metavar="FILE.json", help="write the JSON report here")
+    demo.add_argument("--meshcat", action="store_true", help="serve a live Meshcat view")
+    demo.add_argument("--meshcat-host", default="127.0.0.1", help="address the live view listens on")
+    demo.add_argument("--record", default=None, metavar="FILE.html", help="write an HTML replay here")
+    demo.set_defaults(func=_cmd_demo)
 
     dataset = sub.add_parser("dataset", help="record the stroke data set (real strokes in PyBullet + sensor emulation)")
     dataset.add_argument("--out", required=True, help="output folder (resumed if it exists)")
@@ -170,8 +191,11 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(func=_cmd_evaluate)
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
-    bench.add_argument("what", choices=["ik", "trajectory", "emulation", "inference"])
-    bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model)")
+    bench.add_argument("what", choices=["ik", "trajectory", "emulation", "inference", "demo"])
+    bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
+                       "demo: the classifier (default robotdemo/checkpoints/touchformer_fire)")
+    bench.add_argument("--seeds", type=int, default=10, help="demo: number of seeds (fire environment)")
+    bench.add_argument("--objects", type=int, default=6, help="demo: objects per seed")
     bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--json", action="store_true")

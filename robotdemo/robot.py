@@ -27,7 +27,8 @@ PALM_HEIGHT_M = 0.05
 DISTAL_AND_TIP_M = 0.07
 """Palm height, and distal segment + tip: with the proximal joint at a, the fingertip ends lie
 PALM_HEIGHT_M + PROXIMAL_LENGTH_M cos(a) + DISTAL_AND_TIP_M from gripper_base along its z axis."""
-MAX_GRASP_WIDTH_M = 0.085
+MAX_GRASP_WIDTH_M = 0.088
+"""Widest pinch: the proximal joints open to -0.7 rad (their limit), 23.9 mm + 100 mm x sin(0.7) = 88 mm."""
 
 
 @dataclass(frozen=True)
@@ -49,7 +50,7 @@ class GripperPosture:
         (fingers) in the gripper frame with L = 50 mm the proximal length, so width = 23.9 mm - 2 L sin(a).
         """
         s = (PINCH_ZERO_WIDTH_M - width_m) / (2.0 * PROXIMAL_LENGTH_M)
-        if not -1.0 <= s <= 1.0:
+        if not -1.0 <= s <= 1.0 or width_m > MAX_GRASP_WIDTH_M:
             raise ValueError(f"pinch width {width_m * 1000:.1f} mm is outside what the gripper can open to")
         return GripperPosture.pinch(float(np.arcsin(s)))
 

@@ -68,8 +68,8 @@ class SceneConfig:
     max_reach_m: float = 0.36
     min_gap_m: float = 0.03
     zone_half_size_m: float = 0.11
-    noncombustible_zone_xy_m: tuple[float, float] = (-0.22, 0.35)
-    combustible_zone_xy_m: tuple[float, float] = (-0.22, -0.35)
+    noncombustible_zone_xy_m: tuple[float, float] = (-0.30, 0.32)
+    combustible_zone_xy_m: tuple[float, float] = (-0.30, -0.32)
     table_friction: float = 1.5
     settle_s: float = 0.3
     sim: SimConfig = field(default_factory=SimConfig)

@@ -6,7 +6,7 @@ import pytest
 
 from robotdemo.assets import FLOOR_URDF, TABLE_URDF, urdf_path
 from robotdemo.motion import DOWN, ArmMotion, hold, run_to_completion
-from robotdemo.robot import PINCH_ZERO_WIDTH_M, GripperPosture, Robot, hand_position_for_grasp
+from robotdemo.robot import MAX_GRASP_WIDTH_M, PINCH_ZERO_WIDTH_M, GripperPosture, Robot, hand_position_for_grasp
 from robotdemo.sim import Simulator
 
 TABLE_Z = 0.70
@@ -31,7 +31,7 @@ def test_lifts_block_by_friction(size_m):
         motion = ArmMotion(robot)
         n_constraints_before = p.getNumConstraints(physicsClientId=sim.client)
         start, _ = sim.base_pose(block)
-        opened = GripperPosture.pinch_width(size_m + 0.024)
+        opened = GripperPosture.pinch_width(min(size_m + 0.024, MAX_GRASP_WIDTH_M))
         robot.command_gripper(opened)
         opening = opened.q[0]
         above = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.08, opening, DOWN))

@@ -1,0 +1,180 @@
+"""The sorting state machine, stepped tick by tick: a whole episode, each injected fault and its recovery,
+determinism.
+
+The classifier here is a stand-in that reads the record's ground-truth label (the labels ride along in every
+emulated record): it exercises the robot side only, never the perception.
+"""
+
+import numpy as np
+import pybullet as p
+import pytest
+
+from perception.materials import default_catalogue
+from perception.streams import MODALITIES, StrokeRecord
+from robotdemo.classifier import Classification, average_classifications
+from robotdemo.scene import Scene, SceneConfig
+from robotdemo.sorting import FaultInjector, SortingConfig, SortingMachine, State
+
+CATEGORIES = default_catalogue().categories
+PER_OBJECT = [State.APPROACH, State.STROKE, State.CLASSIFY, State.PRE_GRASP, State.GRASP, State.LIFT,
+              State.TRANSPORT, State.PLACE, State.RELEASE, State.RETREAT]
+"""The states an object goes through without faults (SELECT_OBJECT picks it and moves on in the same tick)."""
+
+
+class OracleClassifier:
+    """Stand-in: the record's true category at 0.94, gate weights uniform over the modalities present.
+    Keeps every record it was given."""
+
+    def __init__(self) -> None:
+        self.records: list[StrokeRecord] = []
+
+    def __call__(self, record: StrokeRecord) -> Classification:
+        self.records.append(record)
+        probs = {c: (0.94 if c == record.category else 0.01) for c in CATEGORIES}
+        present = record.present
+        return Classification(category=record.category, confidence=probs[record.category], probabilities=probs,
+                              gate_weights={m: (1.0 / len(present) if m in present else 0.0) for m in MODALITIES},
+                              modalities_present=present)
+
+
+def _run(scene_config: SceneConfig, faults: FaultInjector = FaultInjector(), seed: int = 0,
+         config: SortingConfig = SortingConfig(), max_ticks: int = 40_000):
+    """Step a machine to DONE, one tick per call, watching it. Returns (machine, classifier, per-object state
+    sequences, stroke phases seen, final poses, true zones, whether every step advanced the physics exactly one
+    control tick, the whole sequence of states)."""
+    classifier = OracleClassifier()
+    with Scene(scene_config) as scene:
+        n_constraints = p.getNumConstraints(physicsClientId=scene.sim.client)
+        machine = SortingMachine(scene, classifier, config, seed=seed, faults=faults)
+        sequences: dict[str, list[State]] = {}
+        states = [machine.state]
+        phases: set = set()
+        one_tick = True
+        for _ in range(max_ticks):
+            steps_before = scene.sim.steps
+            state = machine.step()
+            one_tick &= scene.sim.steps - steps_before == machine.motion.substeps
+            if states[-1] is not state:
+                states.append(state)
+            if machine.current_object is not None:
+                seq = sequences.setdefault(machine.current_object.name, [])
+                if not seq or seq[-1] is not state:
+                    seq.append(state)
+            if machine.stroke_phase is not None:
+                phases.add(machine.stroke_phase.value)
+            if machine.done:
+                break
+        assert machine.done, f"not done after {max_ticks} ticks: {machine.last_event}"
+        assert p.getNumConstraints(physicsClientId=scene.sim.client) == n_constraints  # friction only
+        poses = {o.name: np.concatenate(scene.object_pose(o)) for o in scene.objects}
+        zones = {o.name: scene.zone_for(o.combustible).name for o in scene.objects}
+    return machine, classifier, sequences, phases, poses, zones, one_tick, states
+
+
+@pytest.fixture(scope="module")
+def episode():
+    return _run(SceneConfig(n_objects=3, seed=0))
+
+
+def test_episode_steps_through_every_state_to_done(episode):
+    machine, classifier, sequences, phases, poses, true_zones, one_tick, states = episode
+    assert one_tick, "a step advanced the physics by other than one control tick"
+    assert machine.state is State.DONE and machine.last_event.state is State.DONE
+    assert states == [State.SELECT_OBJECT] + (PER_OBJECT + [State.SELECT_OBJECT]) * 3 + [State.DONE], \
+        [s.value for s in states]
+    assert len(sequences) == 3 and all(seq == PER_OBJECT for seq in sequences.values())
+    assert {"press", "settle", "slide", "lift"} <= phases
+    for name, d in machine.decisions.items():
+        assert d.success, (name, d.failure_reason)
+        assert d.zone_reached == d.target_zone == true_zones[name]
+        assert d.predicted_category == d.true_category and d.strokes_taken == 1 and d.grasp_attempts == 1
+        assert d.start_time_s < d.end_time_s
+    assert machine.grasp_failures == 0
+    assert len(classifier.records) == 3
+
+
+def test_events_are_named_records(episode):
+    machine = episode[0]
+    ticks = [e.tick for e in machine.events]
+    assert ticks == sorted(ticks)
+    stroke_events = [e for e in machine.events if e.state is State.STROKE and "phase slide" in e.message]
+    assert len(stroke_events) == 3 and all(e.object_name for e in stroke_events)
+    # an event carries the tick it happened in: the simulated time before or after that tick's physics
+    assert all(0.3 + e.tick * 0.004 - 1e-9 <= e.time_s <= 0.3 + (e.tick + 1) * 0.004 + 1e-9 for e in machine.events)
+
+
+@pytest.fixture(scope="module")
+def faulty_episode():
+    """Two objects: a reachable one with three faults injected (a sensor dropping out, a first classification
+    of low confidence, a first grasp too weak to hold) and one out of the arm's reach."""
+    scene_config = SceneConfig(n_objects=2, seed=19, object_region_m=(-0.28, 0.40, -0.05, 0.05), max_reach_m=1.0)
+    with Scene(scene_config) as scene:
+        far = max(scene.objects, key=lambda o: o.spec.xy_m[0])
+        near = min(scene.objects, key=lambda o: o.spec.xy_m[0])
+        assert far.spec.xy_m[0] > 0.25 and near.spec.xy_m[0] < -0.15  # the seed gives one of each
+        names = (near.name, far.name)
+    faults = FaultInjector(drop_modalities=("sound",), low_confidence_strokes=1, weak_grasp_attempts=1,
+                           objects=(names[0],))
+    return (*_run(scene_config, faults), names)
+
+
+def test_unreachable_object_is_skipped_with_the_reason(faulty_episode):
+    machine, names = faulty_episode[0], faulty_episode[-1]
+    d = machine.decisions[names[1]]
+    assert not d.success and d.failure_reason.startswith("unreachable: IK failed")
+    assert d.strokes_taken == 0 and d.grasp_attempts == 0 and d.predicted_category is None
+
+
+def test_sensor_dropout_is_classified_with_the_rest(faulty_episode):
+    machine, classifier, names = faulty_episode[0], faulty_episode[1], faulty_episode[-1]
+    assert classifier.records and all(r.stream("sound") is None for r in classifier.records)
+    d = machine.decisions[names[0]]
+    assert "sound" not in d.trusted_sensors and "sound" not in d.modalities_present
+    assert d.trusted_sensors and set(d.trusted_sensors) <= {"normal", "friction", "accel"}
+    assert d.gate_weights["sound"] == 0.0
+
+
+def test_low_confidence_strokes_again_at_another_spot(faulty_episode):
+    machine, classifier, names = faulty_episode[0], faulty_episode[1], faulty_episode[-1]
+    d = machine.decisions[names[0]]
+    assert d.strokes_taken == 2 and len(classifier.records) == 2
+    starts = [r.meta for r in classifier.records]
+    assert starts[0]["stroke"] == 0 and starts[1]["stroke"] == 1
+    assert any("stroking again at another spot" in e.message for e in machine.events)
+    assert d.predicted_category == d.true_category  # averaged: the flattened first stroke keeps the ranking
+    assert 0.5 < d.confidence < 0.94
+
+
+def test_weak_grasp_slips_and_is_retried(faulty_episode):
+    machine, sequences, true_zones, names = faulty_episode[0], faulty_episode[2], faulty_episode[5], faulty_episode[-1]
+    d = machine.decisions[names[0]]
+    assert d.grasp_attempts == 2, [e.message for e in machine.events]
+    assert any("retrying the grasp" in e.message for e in machine.events)
+    assert d.success and d.zone_reached == true_zones[names[0]]
+    assert sequences[names[0]].count(State.GRASP) == 2 and machine.grasp_failures == 1
+
+
+def test_state_over_its_time_budget_fails_the_object_and_goes_on():
+    scene_config = SceneConfig(n_objects=1, seed=4)
+    faults = FaultInjector(time_budget_s={State.LIFT: 0.05})
+    first = _run(scene_config, faults, seed=7)
+    machine, sequences = first[0], first[2]
+    (d,) = machine.decisions.values()
+    assert not d.success and d.failure_reason == "lift exceeded its time budget of 0.05 s"
+    (seq,) = sequences.values()
+    assert seq[seq.index(State.LIFT) + 1] is State.RETREAT and machine.done
+    # determinism: the same seed gives the same decisions and the same final poses
+    second = _run(scene_config, faults, seed=7)
+    assert second[0].decisions == machine.decisions
+    for name, pose in first[4].items():
+        np.testing.assert_allclose(second[4][name], pose, atol=1e-9)
+
+
+def test_average_classifications_decides_from_mean_probabilities():
+    a = Classification("wood", 0.5, {"wood": 0.5, "metal": 0.4, "paper": 0.1}, {"sound": 1.0}, ("sound",))
+    b = Classification("metal", 0.7, {"wood": 0.2, "metal": 0.7, "paper": 0.1}, {"sound": 0.5, "normal": 0.5},
+                       ("sound", "normal"))
+    mean = average_classifications([a, b])
+    assert mean.category == "metal" and mean.confidence == pytest.approx(0.55)
+    assert mean.gate_weights == {"sound": 0.75, "normal": 0.25}
+    assert mean.modalities_present == ("sound", "normal")
