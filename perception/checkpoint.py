@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +21,7 @@ import torch
 import torch.nn as nn
 
 from perception.baselines import MODEL_REGISTRY
+from perception.atomic import atomic_write
 from perception.features import FeatureConfig, NormStats, feature_dims
 from perception.streams import MODALITIES
 
@@ -94,17 +94,6 @@ def config_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
         raise ValueError(f"{cls.__name__}: {exc}") from None
 
 
-def _atomic_write(path: Path, write: typing.Callable[[str], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_checkpoint(directory: str | os.PathLike, model_name: str, model: nn.Module, model_config: Any,
                     feature_config: FeatureConfig, norm_stats: NormStats, class_names: Sequence[str],
                     meta: Mapping[str, Any] | None = None) -> Path:
@@ -137,8 +126,8 @@ def save_checkpoint(directory: str | os.PathLike, model_name: str, model: nn.Mod
         "norm_stats": norm_stats.to_dict(), "class_names": list(class_names), "meta": dict(meta or {}),
     }
     text = json.dumps(record, indent=2, sort_keys=True)
-    _atomic_write(directory / WEIGHTS_FILE, lambda tmp: safetensors.torch.save_file(state, tmp))
-    _atomic_write(directory / CONFIG_FILE, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    atomic_write(directory / WEIGHTS_FILE, lambda tmp: safetensors.torch.save_file(state, tmp))
+    atomic_write(directory / CONFIG_FILE, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
     return directory
 
 

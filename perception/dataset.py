@@ -30,7 +30,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from perception.atomic import atomic_write_json
 from perception.recording_io import RecordingFormatError, read_strokes, write_strokes
 from perception.streams import StrokeRecord
 
@@ -184,11 +184,7 @@ def write_dataset(directory: str | os.PathLike, records: Iterable[StrokeRecord],
     manifest = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "env": env, "seed": int(seed),
                 "config": dict(config or {}), "shards": shards}
     path = root / MANIFEST_FILE
-    fd, tmp = tempfile.mkstemp(prefix=".manifest.", suffix=".tmp", dir=root)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        json.dump(manifest, fh, indent=2, sort_keys=True)
-    os.replace(tmp, path)
-    return path
+    return atomic_write_json(path, manifest, sort_keys=True)
 
 
 # ----------------------------------------------------------------------------------------------------------

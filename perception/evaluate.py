@@ -487,7 +487,6 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
                                "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
                                "deviations": {**DEVIATIONS, **EVAL_DEVIATIONS}}
 
-    nn_models = [m for m in cfg.models if m != "reference"]
     ablation = ["touchformer_fusion", "touchformer_mag", "touchformer"] if cfg.ablation else []
     jobs = []
     for task in ("ssmc", "usmc", "fine"):

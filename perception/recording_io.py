@@ -13,16 +13,15 @@ sees half a file and an interrupted writer leaves what was there before.
 
 from __future__ import annotations
 
-import io
 import json
 import os
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 
+from perception.atomic import atomic_write
 from perception.streams import MODALITIES, Stream, StreamError, StrokeRecord
 
 FORMAT_NAME = "robotdemo-strokes"
@@ -57,17 +56,12 @@ def write_strokes(path: str | os.PathLike, records: Iterable[StrokeRecord]) -> P
             stream = rec.streams.get(key)
             if stream is not None:
                 arrays[f"{i}/{key}"] = np.ascontiguousarray(stream.data, dtype=np.float32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **arrays)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, write)
     return path
 
 

@@ -22,7 +22,6 @@ import dataclasses
 import json
 import math
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ import torch
 import torch.nn as nn
 from tqdm.auto import tqdm
 
+from perception.atomic import atomic_write
 from perception.baselines import MODEL_REGISTRY, build_model
 from perception.checkpoint import config_from_dict, config_to_dict, load_checkpoint, save_checkpoint
 from perception.dataset import TASKS, labels_of
@@ -290,17 +290,6 @@ def cosine_lr(base_lr: float, step: int, total_steps: int) -> float:
 # resume state
 
 
-def _atomic(path: Path, write: Callable[[str], None]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _save_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, record: dict[str, Any]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
@@ -311,9 +300,9 @@ def _save_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
         for name, value in state.items():
             tensors[f"optim.{pid}.{name}"] = torch.as_tensor(value).detach().cpu().contiguous()
     record = {**record, "optimizer_param_groups": opt["param_groups"], "optimizer_state_keys": state_keys}
-    _atomic(folder / "state.safetensors", lambda tmp: safetensors.torch.save_file(tensors, tmp))
+    atomic_write(folder / "state.safetensors", lambda tmp: safetensors.torch.save_file(tensors, tmp))
     text = json.dumps(record, indent=2, sort_keys=True)
-    _atomic(folder / "state.json", lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    atomic_write(folder / "state.json", lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
 
 
 def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device

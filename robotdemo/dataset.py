@@ -19,10 +19,8 @@ import hashlib
 import json
 import math
 import multiprocessing as mp
-import os
-import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -30,6 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from controllers.stroke import StrokeConfig
+from perception.atomic import atomic_write_json
 from perception.contact_trace import ObjectInfo
 from perception.materials import Material, MaterialCatalogue, contact_dynamics, default_catalogue, sample_material
 from perception.recording_io import write_strokes
@@ -39,7 +38,6 @@ from robotdemo.errors import RobotDemoError
 from robotdemo.motion import ArmMotion, UnreachableError
 from robotdemo.robot import GripperPosture
 from robotdemo.scene import ObjectSpec, Scene, SceneConfig
-from robotdemo.sim import SimulationError
 from robotdemo.stroking import StrokeExecution, move_pad_above, top_surface_point
 
 FORMAT_NAME = "robotdemo-dataset"
@@ -193,17 +191,6 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _write_json_atomic(path: Path, payload: dict) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(payload, fh, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def plan_jobs(config: DatasetConfig, catalogue: MaterialCatalogue) -> list[ShardJob]:
     names = [name for name, m in catalogue.instances.items()
              if (config.categories is None or m.category in config.categories)
@@ -254,11 +241,11 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
                                        "failed_strokes": config.strokes_per_instance - n,
                                        "sha256": _sha256(out / job.file)})
             manifest["shards"].sort(key=lambda s: s["file"])
-            _write_json_atomic(manifest_path, manifest)
+            atomic_write_json(manifest_path, manifest, indent=1, sort_keys=True)
             bar.update(n)
     finally:
         if pool is not None:
             pool.terminate()
         bar.close()
-    _write_json_atomic(manifest_path, manifest)
+    atomic_write_json(manifest_path, manifest, indent=1, sort_keys=True)
     return manifest

@@ -15,11 +15,8 @@ Typical use::
 from __future__ import annotations
 
 import io
-import json
-import os
 import statistics
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +24,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from perception.atomic import atomic_write_json
 from robotdemo.errors import RobotDemoError
 from robotdemo.sorting import NO_FAULTS, Classifier, FaultInjector, SortingConfig, SortingMachine
 
@@ -65,17 +63,7 @@ class DemoConfig:
 
 def write_json_atomic(path: Path, data: Any) -> None:
     """Write ``data`` as JSON to ``path`` through a temporary file in the same folder and a rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_json(path, data)
 
 
 def summarize(machine: SortingMachine | None, n_objects: int, sim_s: float, wall_s: float) -> dict[str, Any]:
@@ -130,17 +118,10 @@ def _taxel_normals(machine: SortingMachine) -> np.ndarray | None:
     stroke = machine.stroke_execution
     if stroke is None or len(stroke.recorder.t_s) < 2:
         return None
-    from perception.contact_trace import ContactTrace, ContactTraceError
+    from perception.contact_trace import ContactTraceError
     from perception.sensors.taxels import taxel_forces
-    rec = stroke.recorder
     try:
-        trace = ContactTrace(t_s=np.array(rec.t_s[-2:]), point_valid=np.array(rec.valid[-2:]),
-                             point_normal_force_n=np.array(rec.normal[-2:]),
-                             point_shear_force_n=np.array(rec.shear[-2:]),
-                             point_position_on_pad_m=np.array(rec.on_pad[-2:]),
-                             pad_position_on_object_m=np.array(rec.on_object[-2:]),
-                             pad_velocity_mps=np.array(rec.velocity[-2:]),
-                             pad_acceleration_mps2=np.array(rec.acceleration[-2:]))
+        trace = stroke.recorder.to_trace(last=2)
     except ContactTraceError:
         return None
     return taxel_forces(trace)[-1, :, 2]

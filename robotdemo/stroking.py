@@ -88,13 +88,16 @@ class _TraceRecorder:
     velocity: list = field(default_factory=list)
     acceleration: list = field(default_factory=list)
 
-    def to_trace(self) -> ContactTrace:
-        on_pad, normal, shear, valid = distribute_patch(np.array(self.on_pad), np.array(self.normal),
-                                                        np.array(self.shear), np.array(self.valid))
-        return ContactTrace(t_s=np.array(self.t_s), point_valid=valid, point_normal_force_n=normal,
+    def to_trace(self, last: int | None = None) -> ContactTrace:
+        """The recorded rows (only the ``last`` ones if given) as a :class:`ContactTrace`."""
+        rows = slice(-last if last else None, None)
+        on_pad, normal, shear, valid = distribute_patch(np.array(self.on_pad[rows]), np.array(self.normal[rows]),
+                                                        np.array(self.shear[rows]), np.array(self.valid[rows]))
+        return ContactTrace(t_s=np.array(self.t_s[rows]), point_valid=valid, point_normal_force_n=normal,
                             point_shear_force_n=shear, point_position_on_pad_m=on_pad,
-                            pad_position_on_object_m=np.array(self.on_object),
-                            pad_velocity_mps=np.array(self.velocity), pad_acceleration_mps2=np.array(self.acceleration))
+                            pad_position_on_object_m=np.array(self.on_object[rows]),
+                            pad_velocity_mps=np.array(self.velocity[rows]),
+                            pad_acceleration_mps2=np.array(self.acceleration[rows]))
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,8 @@ from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from perception.atomic import atomic_write_text
+
 from robotdemo.errors import RobotDemoError
 
 try:  # meshcat-python pulls in IPython, tornado and zmq: report a missing piece as ViewerUnavailable
@@ -238,12 +240,6 @@ def _heat_rgb(fraction: float) -> list[float]:
             a = (t - t0) / (t1 - t0)
             return [round(c0[i] + a * (c1[i] - c0[i]), 4) for i in range(3)]
     return list(stops[-1][1])
-
-
-def _current_umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
 
 
 def _safe_name(text: str) -> str:
@@ -917,18 +913,7 @@ class SceneViewer:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         html = self.static_html()
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                f.write(html)
-                f.flush()
-                os.fsync(f.fileno())
-            os.chmod(tmp, 0o666 & ~_current_umask())   # mkstemp makes it 0600; give it a normal file's mode
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return atomic_write_text(path, html)
 
     def close(self) -> None:
         """Stop the live server process and drop the connection (idempotent)."""

@@ -1,6 +1,5 @@
 """The stroke data set: real strokes, shards written atomically, resumable, identical whatever the workers."""
 
-import json
 
 import numpy as np
 import pytest

@@ -6,7 +6,7 @@ import pytest
 
 from robotdemo.assets import FLOOR_URDF, TABLE_URDF, urdf_path
 from robotdemo.motion import DOWN, ArmMotion, hold, run_to_completion
-from robotdemo.robot import MAX_GRASP_WIDTH_M, PINCH_ZERO_WIDTH_M, GripperPosture, Robot, hand_position_for_grasp
+from robotdemo.robot import MAX_GRASP_WIDTH_M, GripperPosture, Robot, hand_position_for_grasp
 from robotdemo.sim import Simulator
 
 TABLE_Z = 0.70

@@ -4,7 +4,6 @@ import subprocess
 import sys
 import zipfile
 
-import pytest
 
 from robotdemo.assets import ROBOT_URDF, urdf_root
 
@@ -25,6 +24,7 @@ def test_wheel_carries_descriptions_and_data(tmp_path):
     assert "robotdemo/_urdf/scene/table.urdf" in names
     assert "perception/materials.toml" in names
     assert "controllers/ik.py" in names
+    assert "robotdemo/checkpoints/touchformer_fire/model.safetensors" in names
 
 
 def test_python_dash_m_shows_help():
