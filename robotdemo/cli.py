@@ -106,6 +106,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         result = run_demo_bench(seeds=args.seeds, n_objects=args.objects, environment="fire",
                                 checkpoint=Path(args.checkpoint) if args.checkpoint else DEFAULT_CHECKPOINT,
                                 first_seed=args.seed)
+    elif args.what == "stroke":
+        from robotdemo.benchmarks.stroke_bench import run_stroke_benchmark
+        result = run_stroke_benchmark()
     elif args.what == "emulation":
         from robotdemo.benchmarks.emulation_bench import run_emulation_benchmark
         result = run_emulation_benchmark(n_strokes=args.n or 6, seed=args.seed)
@@ -191,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(func=_cmd_evaluate)
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
-    bench.add_argument("what", choices=["ik", "trajectory", "emulation", "inference", "demo"])
+    bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo"])
     bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
                        "demo: the classifier (default robotdemo/checkpoints/touchformer_fire)")
     bench.add_argument("--seeds", type=int, default=10, help="demo: number of seeds (fire environment)")

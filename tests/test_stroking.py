@@ -77,3 +77,12 @@ def test_patch_distribution_keeps_force_and_moment():
     assert shears[0].sum(axis=0) == pytest.approx([-2.0, 0.0])
     # an edge contact (two points) is left as it is
     assert ok[1].sum() == 2 and np.array_equal(forces[1][:2], normal[1][:2])
+
+
+def test_stroke_benchmark_reports_each_case(monkeypatch):
+    from robotdemo.benchmarks import stroke_bench
+
+    monkeypatch.setattr(stroke_bench, "CASES", (("rubber", 1, 1.0),))
+    row = stroke_bench.run_stroke_benchmark()["strokes"][0]
+    assert row["success"] and row["tracking_error_median_mm"] < 0.5
+    assert 0.8 <= row["slide_force_min_n"] <= row["slide_force_max_n"] <= 1.2

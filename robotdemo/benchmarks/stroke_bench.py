@@ -1,0 +1,41 @@
+"""How well strokes executed in PyBullet track their commands: pad tracking error, force band, slide length
+and speed, on a soft and a hard material (the cases of tests/test_stroking.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controllers.stroke import StrokeConfig, StrokePhase
+from robotdemo.motion import ArmMotion
+from robotdemo.scene import Scene, SceneConfig
+from robotdemo.stroking import cruise_speed_mps, move_pad_above, run_stroke, top_surface_point
+
+CASES = (("rubber", 1, 1.0), ("metal", 1, 4.0), ("wood", 0, 2.0))
+
+
+def run_stroke_benchmark(speed_mps: float = 0.02, length_m: float = 0.03) -> dict:
+    rows = []
+    for category, seed, force_n in CASES:
+        with Scene(SceneConfig(n_objects=1, seed=seed, categories=(category,), shapes=("box",))) as scene:
+            obj = scene.objects[0]
+            motion = ArmMotion(scene.robot)
+            config = StrokeConfig(target_force_n=force_n, speed_mps=speed_mps, length_m=length_m,
+                                  start_point_m=tuple(top_surface_point(scene, obj, (-0.015, 0.0))))
+            move_pad_above(scene, motion, config)
+            result = run_stroke(scene, motion, obj, config)
+            sliding = np.array([phase is StrokePhase.SLIDE for phase in result.phase_log])
+            force = result.force_log_n[sliding][int(0.1 / motion.config.control_period_s):]
+            distance = (float(np.linalg.norm(result.slide_end_m - result.slide_start_m))
+                        if result.slide_end_m is not None else 0.0)
+            rows.append({
+                "material": obj.instance, "contact_stiffness_n_per_m": round(obj.spec.dynamics.contact_stiffness_n_per_m),
+                "success": result.success, "failure": result.failure_reason, "target_force_n": force_n,
+                "slide_force_min_n": round(float(force.min()), 3) if len(force) else None,
+                "slide_force_max_n": round(float(force.max()), 3) if len(force) else None,
+                "slide_length_m": round(distance, 5), "requested_length_m": length_m,
+                "cruise_speed_mps": round(cruise_speed_mps(result, motion.config.control_period_s), 5),
+                "requested_speed_mps": speed_mps,
+                "tracking_error_median_mm": round(float(np.median(result.tracking_error_m)) * 1000, 3),
+                "tracking_error_max_mm": round(float(np.max(result.tracking_error_m)) * 1000, 3),
+            })
+    return {"strokes": rows}
