@@ -14,7 +14,7 @@ import numpy as np
 
 from controllers.stroke import StrokeCommand, StrokeConfig, StrokeController, StrokePhase
 from perception.contact_trace import ContactTrace
-from robotdemo.motion import ArmMotion, hold, run_to_completion
+from robotdemo.motion import ArmMotion, UnreachableError, hold, run_to_completion
 from robotdemo.robot import GripperPosture
 from robotdemo.scene import Scene, SceneObject
 
@@ -133,9 +133,8 @@ class StrokeResult:
 
 def top_surface_point(scene: Scene, obj: SceneObject, offset_xy_m=(0.0, 0.0)) -> np.ndarray:
     """World point on the object's top face, ``offset_xy_m`` from its centre in the object's frame."""
-    pos, orn = scene.object_pose(obj)
-    rot = np.asarray(scene.sim.link_state(obj.body, -1).rotation)
-    return pos + rot @ np.array([offset_xy_m[0], offset_xy_m[1], obj.spec.size_m[2] / 2])
+    state = scene.sim.link_state(obj.body, -1)
+    return state.position_m + state.rotation @ np.array([offset_xy_m[0], offset_xy_m[1], obj.spec.size_m[2] / 2])
 
 
 def pad_normal_force_n(scene: Scene, obj: SceneObject) -> float:
@@ -153,7 +152,6 @@ def move_pad_above(scene: Scene, motion: ArmMotion, config: StrokeConfig) -> np.
     sol_hover = motion.solve_pad(hover, config.rotation(), q=sol_above.q)
     for name, sol, point in (("above", sol_above, above), ("hover", sol_hover, hover)):
         if not sol.success:
-            from robotdemo.motion import UnreachableError
             raise UnreachableError(f"stroke {name} point {np.round(point, 3).tolist()} m is unreachable "
                                    f"(IK residual {sol.position_error_m * 1000:.2f} mm)")
     run_to_completion(motion.plan_path([sol_above.q, sol_hover.q]))
