@@ -106,6 +106,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         result = run_demo_bench(seeds=args.seeds, n_objects=args.objects, environment="fire",
                                 checkpoint=Path(args.checkpoint) if args.checkpoint else DEFAULT_CHECKPOINT,
                                 first_seed=args.seed)
+    elif args.what == "reference":
+        if not args.data:
+            raise RobotDemoError("bench reference needs --data DIR (a data set folder)")
+        from perception.dataset import load_dataset
+        from perception.reference_classifier import honesty_check
+        result = {"data": args.data, **honesty_check(load_dataset(args.data).records, seed=args.seed)}
     elif args.what == "stroke":
         from robotdemo.benchmarks.stroke_bench import run_stroke_benchmark
         result = run_stroke_benchmark()
@@ -194,9 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(func=_cmd_evaluate)
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
-    bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo"])
+    bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo", "reference"])
     bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
                        "demo: the classifier (default robotdemo/checkpoints/touchformer_fire)")
+    bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on")
     bench.add_argument("--seeds", type=int, default=10, help="demo: number of seeds (fire environment)")
     bench.add_argument("--objects", type=int, default=6, help="demo: objects per seed")
     bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")

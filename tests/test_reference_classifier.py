@@ -61,3 +61,14 @@ def test_explicit_labels_and_instance_label():
         clf.fit(train, combust[:3])
     with pytest.raises(ValueError, match="label"):
         ReferenceConfig(label="colour")
+
+
+def test_honesty_check_flags_an_emulation_that_is_too_easy():
+    from perception.reference_classifier import honesty_check
+    from tests.test_dataset import make_material_strokes
+
+    easy = honesty_check(make_material_strokes(0, noise=0.05, n_strokes=4), seed=0)
+    assert easy["category_accuracy"] > 0.9 and easy["too_easy"]
+    hard = honesty_check(make_material_strokes(0, noise=50.0, n_strokes=4), seed=0)
+    assert hard["category_accuracy"] < easy["category_accuracy"] and not hard["too_easy"]
+    assert set(easy) >= {"n_train", "n_test", "category_accuracy", "instance_accuracy"}
