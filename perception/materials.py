@@ -368,6 +368,13 @@ def nominal_sample(material: Material) -> MaterialSample:
 # --------------------------------------------------------------------------------------------- dynamics
 
 
+
+FINGERTIP_MASS_KG = 0.1
+"""Effective mass of the thumb's fingertip behind the tactile pad, kg: the distal segment (0.08 kg), tip
+(0.04 kg) and pad (0.005 kg) of urdf/dg3f_lite, less the share the distal joint carries. The one value the
+contact model, the impact and friction excitation, the IMU and the sound all use.
+"""
+
 @dataclass(frozen=True)
 class ContactModelConfig:
     """How material parameters map to PyBullet contact values.
@@ -393,7 +400,7 @@ class ContactModelConfig:
     poisson_ratio: float = 0.3
     stiffness_min_n_per_m: float = 1.0e3
     stiffness_max_n_per_m: float = 3.0e5
-    fingertip_mass_kg: float = 0.1
+    fingertip_mass_kg: float = FINGERTIP_MASS_KG
     damping_ratio_range: tuple[float, float] = (0.3, 1.0)
     spinning_radius_m: float = 0.002
 

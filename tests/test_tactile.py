@@ -157,11 +157,12 @@ def test_fire_is_noisier_than_clean():
     sample = _sample("steel")
     quiet = {"clean": [], "fire": []}
     for env in quiet:
-        for seed in range(3):
+        for seed in range(6):
             rec = _record(sample, seed=seed, env=env, slide_s=0.3)
             if rec.streams["sound"] is not None:
                 quiet[env].append(np.std(_window(rec, "sound", 0.05, 0.14)))
-    assert np.median(quiet["fire"]) > 3.0 * np.median(quiet["clean"])
+    # roar, crackles and alarms on top of the room noise: several times louder before the pad touches down
+    assert np.median(quiet["fire"]) > 2.5 * np.median(quiet["clean"])
 
 
 def test_bad_inputs_raise_clear_errors():

@@ -34,7 +34,7 @@ import numpy as np
 import scipy.signal
 
 from perception.contact_trace import ContactTrace, ObjectInfo
-from perception.materials import ContactModelConfig, local_contact_stiffness_n_per_m
+from perception.materials import FINGERTIP_MASS_KG, ContactModelConfig, local_contact_stiffness_n_per_m
 from perception.sensors.resample import interpolate_uniform
 from perception.sensors.texture import SurfaceTexture
 
@@ -78,7 +78,7 @@ class ContactConfig:
     max_texture_slope: float = 0.3
     max_normal_modulation: float = 0.5
     contact_threshold_n: float = 0.02
-    fingertip_mass_kg: float = 0.08
+    fingertip_mass_kg: float = FINGERTIP_MASS_KG
     impact_quiet_s: float = 0.02
 
 

@@ -17,6 +17,7 @@ import numpy as np
 import scipy.signal
 
 from perception.contact_trace import ContactTrace
+from perception.materials import FINGERTIP_MASS_KG
 from perception.sensors.contact_excitation import ContactExcitation
 from perception.sensors.resample import sensor_samples
 
@@ -38,7 +39,7 @@ class ImuConfig:
     rate_hz: float = 500.0
     resonance_hz: float = 180.0
     damping_ratio: float = 0.15
-    fingertip_mass_kg: float = 0.08
+    fingertip_mass_kg: float = FINGERTIP_MASS_KG
     noise_density_mps2_per_sqrt_hz: float = 150e-6 * 9.81
     bias_spread_mps2: float = 0.05
     scale_spread: float = 0.01

@@ -41,7 +41,7 @@ import numpy as np
 import scipy.signal
 
 from perception.contact_trace import ObjectInfo
-from perception.materials import MaterialSample, object_volume_m3
+from perception.materials import FINGERTIP_MASS_KG, MaterialSample, object_volume_m3
 from perception.sensors.contact_excitation import ContactExcitation
 
 _BETA_L = (4.730040745, 7.853204624, 10.995607838, 14.137165491, 17.278759657)
@@ -80,7 +80,7 @@ class SoundConfig:
     extensional_orders: int = 3
     mic_distance_range_m: tuple[float, float] = (0.02, 0.05)
     poisson_ratio: float = 0.3
-    fingertip_mass_kg: float = 0.08
+    fingertip_mass_kg: float = FINGERTIP_MASS_KG
     fingertip_size_m: float = 0.02
     support_resonance_hz: float = 150.0
     highpass_hz: float = 30.0
