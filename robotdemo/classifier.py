@@ -74,6 +74,57 @@ def average_classifications(results: list[Classification]) -> Classification:
                           gate_weights=gates, modalities_present=present)
 
 
+def combustible_probability(result: Classification, combustible: Mapping[str, bool]) -> float:
+    """P(the material burns): the summed probabilities of the combustible categories."""
+    return float(sum(p for c, p in result.probabilities.items() if combustible[c]))
+
+
+@dataclass(frozen=True)
+class ZoneDecision:
+    """What the robot does with a classification: which zone, and how sure it is of that.
+
+    Attributes:
+        combustible: the object goes to the combustible zone.
+        combustible_probability: P(combustible), the sum over the combustible categories.
+        confidence: probability of the chosen side, max(P, 1 - P), in [0.5, 1].
+        category: the most probable category on the chosen side (so the reported category and the zone agree).
+    """
+
+    combustible: bool
+    combustible_probability: float
+    confidence: float
+    category: str
+
+
+def decide_zone(result: Classification, combustible: Mapping[str, bool]) -> ZoneDecision:
+    """The sorting decision from category probabilities: the side (combustible or not) with the larger summed
+    probability, which minimises the chance of a wrong zone; then the most probable category on that side
+    (ties broken by name). The category's own arg-max can lie on the other side when the probability is spread
+    over several categories of one side."""
+    p_burn = combustible_probability(result, combustible)
+    burns = p_burn >= 0.5
+    side = [c for c in result.probabilities if combustible[c] == burns] or [result.category]
+    category = max(side, key=lambda c: (result.probabilities.get(c, 0.0), c))
+    return ZoneDecision(combustible=burns, combustible_probability=p_burn, confidence=max(p_burn, 1.0 - p_burn),
+                        category=category)
+
+
+class OracleClassifier:
+    """Answers each record's true category with probability 1: a diagnostic that separates the robot's
+    handling (strokes, grasps, placing) from the classifier's mistakes in ``robotdemo bench demo --oracle``.
+    It reads the label, so no figure it produces is a sorting accuracy of the robot."""
+
+    def __init__(self) -> None:
+        self.categories = tuple(default_catalogue().combustible)
+
+    def __call__(self, record: StrokeRecord) -> Classification:
+        probs = {c: float(c == record.category) for c in self.categories}
+        present = record.present
+        return Classification(category=record.category, confidence=1.0, probabilities=probs,
+                              gate_weights={m: (1.0 / len(present) if m in present else 0.0) for m in MODALITIES},
+                              modalities_present=present)
+
+
 class TouchFormerClassifier:
     """A trained checkpoint (TouchFormer or any model of :data:`perception.baselines.MODEL_REGISTRY`) as a
     ``StrokeRecord -> Classification`` callable, on CPU.

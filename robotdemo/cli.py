@@ -105,7 +105,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from robotdemo.demo import DEFAULT_CHECKPOINT, run_demo_bench
         result = run_demo_bench(seeds=args.seeds, n_objects=args.objects, environment="fire",
                                 checkpoint=Path(args.checkpoint) if args.checkpoint else DEFAULT_CHECKPOINT,
-                                first_seed=args.seed)
+                                first_seed=args.seed, oracle=args.oracle)
     elif args.what == "reference":
         if not args.data:
             raise RobotDemoError("bench reference needs --data DIR (a data set folder)")
@@ -206,6 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on")
     bench.add_argument("--seeds", type=int, default=10, help="demo: number of seeds (fire environment)")
     bench.add_argument("--objects", type=int, default=6, help="demo: objects per seed")
+    bench.add_argument("--oracle", action="store_true",
+                       help="demo: classify with the true labels (the robot's handling alone; a diagnostic)")
     bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--json", action="store_true")

@@ -224,12 +224,16 @@ def run_demo(config: DemoConfig, classifier: Classifier | None = None, out: Text
 
 def run_demo_bench(seeds: int, n_objects: int = 6, environment: str = "fire",
                    checkpoint: Path = DEFAULT_CHECKPOINT, classifier: Classifier | None = None,
-                   first_seed: int = 0) -> dict[str, Any]:
+                   first_seed: int = 0, oracle: bool = False) -> dict[str, Any]:
     """The demo over seeds ``first_seed .. first_seed + seeds - 1``, headless: medians over seeds, and pooled
-    accuracy and grasp success over all objects."""
+    accuracy and grasp success over all objects. ``oracle`` replaces the classifier by
+    :class:`~robotdemo.classifier.OracleClassifier` (the robot's handling alone; a diagnostic)."""
     if seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {seeds}")
     source = "passed in" if classifier is not None else str(checkpoint)
+    if oracle:
+        from robotdemo.classifier import OracleClassifier
+        classifier, source = OracleClassifier(), "oracle (true labels: a diagnostic of the robot's handling)"
     if classifier is None:
         from robotdemo.classifier import TouchFormerClassifier
         classifier = TouchFormerClassifier.from_checkpoint(checkpoint)
@@ -252,6 +256,9 @@ def run_demo_bench(seeds: int, n_objects: int = 6, environment: str = "fire",
                                           "real_time_factor")},
         "pooled": {"sorting_accuracy": (sum(r["sorted_correctly"] for r in runs) / (n_objects * seeds)
                                         if n_objects else None),
-                   "grasp_success_rate": (sum(r["grasp_successes"] for r in runs) / attempts) if attempts else None},
+                   "grasp_success_rate": (sum(r["grasp_successes"] for r in runs) / attempts) if attempts else None,
+                   "classified_correctly": (sum(r["classified_correctly"] for r in runs) / (n_objects * seeds)
+                                            if n_objects else None),
+                   "strokes": sum(r["strokes"] for r in runs)},
         "runs": runs,
     }

@@ -34,7 +34,8 @@ class MotionConfig:
     """Control-loop settings.
 
     Attributes:
-        control_period_s: one control tick (IK + motor targets); a multiple of the physics step.
+        control_period_s: one control tick (IK + motor targets); a multiple of both physics steps (fine and
+            coarse, see :class:`robotdemo.sim.SimConfig`).
         velocity_scale: fraction of the URDF joint speeds used by joint-space moves.
     """
 
@@ -50,6 +51,7 @@ class ArmMotion:
         self.config = config
         sim_dt = robot.sim.config.time_step_s
         self.substeps = max(1, int(round(config.control_period_s / sim_dt)))
+        """Fine physics steps per control tick (a stroke steps them one by one to record each)."""
         stroke_lock = dict(zip(GRIPPER_JOINTS, GripperPosture.stroke().q))
         self.pad_kin = ArmKinematics(robot.urdf, TOOL_FRAME, ARM_JOINTS, stroke_lock)
         self.hand_kin = ArmKinematics(robot.urdf, GRASP_FRAME, ARM_JOINTS)
@@ -115,7 +117,7 @@ class JointMove:
         self.t_s = min(self.t_s + m.config.control_period_s, self.trajectory.duration_s)
         q, qd, _ = self.trajectory.sample(self.t_s)
         m.robot.command_arm(q, qd)
-        m.robot.sim.step(m.substeps)
+        m.robot.sim.advance(m.config.control_period_s)
         self.tracking_errors_rad.append(float(np.max(np.abs(m.robot.arm_q() - q))))
         return self.done
 
@@ -136,7 +138,7 @@ class SampledMove:
         m = self.motion
         q = self.q_samples[min(self.index, len(self.q_samples) - 1)]
         m.robot.command_arm(q)
-        m.robot.sim.step(m.substeps)
+        m.robot.sim.advance(m.config.control_period_s)
         self.index += 1
         return self.done
 
@@ -151,4 +153,4 @@ def run_to_completion(move: JointMove | SampledMove, max_ticks: int = 100_000) -
 
 def hold(robot: Robot, seconds: float, control_period_s: float = 0.004) -> None:
     """Keep the current motor targets for ``seconds`` of simulated time."""
-    robot.sim.step(int(round(seconds / robot.sim.config.time_step_s)))
+    robot.sim.advance(seconds)

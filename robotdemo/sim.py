@@ -30,6 +30,9 @@ class SimConfig:
         pad slid over the objects with almost no friction reported (1e-3 N against 1.3 N expected).
         solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
             default 1e-7; at 1e-5 and above the force loop on a hard block no longer settles within +-10 %).
+        coarse_time_step_s, coarse_solver_iterations: the physics step and iterations of the coarse mode
+            (:meth:`Simulator.use_coarse_steps`), for free motion and carrying, where nothing needs the 1 ms
+            resolution of a pad pressing on a surface. A multiple of ``time_step_s``.
         gravity_mps2: gravity along world -z.
         gui: open PyBullet's own GUI window instead of running headless (DIRECT).
     """
@@ -37,6 +40,8 @@ class SimConfig:
     time_step_s: float = 1.0 / 1000.0
     solver_iterations: int = 100
     solver_residual_threshold: float = 1e-7
+    coarse_time_step_s: float = 4.0 / 1000.0
+    coarse_solver_iterations: int = 100
     gravity_mps2: float = 9.81
     contact_erp: float = 0.2
     friction_erp: float = 0.2
@@ -136,8 +141,13 @@ class Simulator:
             numSubSteps=0, deterministicOverlappingPairs=1, solverResidualThreshold=config.solver_residual_threshold, contactERP=config.contact_erp,
             frictionERP=config.friction_erp, contactSlop=config.contact_slop_m, enableConeFriction=1,
             physicsClientId=self.client)
+        if config.coarse_time_step_s < config.time_step_s:
+            raise ValueError("SimConfig.coarse_time_step_s must not be shorter than time_step_s")
         self.time_s = 0.0
         self.steps = 0
+        self.coarse = False
+        self._mode_start_s = 0.0
+        self._mode_steps = 0
 
     # -- life cycle -------------------------------------------------------------------------------------------
     def close(self) -> None:
@@ -186,11 +196,38 @@ class Simulator:
         p.changeDynamics(body, link, physicsClientId=self.client, **kwargs)
 
     # -- stepping ---------------------------------------------------------------------------------------------
+    @property
+    def time_step_s(self) -> float:
+        """The physics step in use now, s (``coarse_time_step_s`` in the coarse mode)."""
+        return self.config.coarse_time_step_s if self.coarse else self.config.time_step_s
+
+    def use_coarse_steps(self, coarse: bool) -> None:
+        """Switch between the fine mode (``time_step_s``, ``solver_iterations``: contact that is measured or
+        must be resolved finely) and the coarse mode (``coarse_time_step_s``, ``coarse_solver_iterations``)."""
+        if coarse == self.coarse:
+            return
+        self._mode_start_s, self._mode_steps = self.time_s, 0
+        self.coarse = coarse
+        c = self.config
+        p.setPhysicsEngineParameter(
+            fixedTimeStep=self.time_step_s,
+            numSolverIterations=c.coarse_solver_iterations if coarse else c.solver_iterations,
+            physicsClientId=self.client)
+
     def step(self, n: int = 1) -> None:
+        """``n`` physics steps of the current mode."""
         for _ in range(n):
             p.stepSimulation(physicsClientId=self.client)
         self.steps += n
-        self.time_s = self.steps * self.config.time_step_s
+        self._mode_steps += n
+        self.time_s = self._mode_start_s + self._mode_steps * self.time_step_s
+
+    def advance(self, seconds: float) -> None:
+        """Step the physics ``seconds`` of simulated time (a whole number of steps of the current mode)."""
+        n = int(round(seconds / self.time_step_s))
+        if n < 1 or abs(n * self.time_step_s - seconds) > 1e-9:
+            raise ValueError(f"cannot advance {seconds} s in whole physics steps of {self.time_step_s} s")
+        self.step(n)
 
     # -- queries ----------------------------------------------------------------------------------------------
     def joints(self, body: int) -> list[JointInfo]:

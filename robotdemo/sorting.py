@@ -46,7 +46,7 @@ from perception.contact_trace import ObjectInfo
 from perception.materials import default_catalogue
 from perception.streams import MODALITIES, StrokeRecord
 from perception.tactile import ENVIRONMENTS, emulate_stroke
-from robotdemo.classifier import Classification, average_classifications
+from robotdemo.classifier import Classification, average_classifications, decide_zone
 from robotdemo.errors import RobotDemoError
 from robotdemo.motion import DOWN, ArmMotion, JointMove, MotionConfig
 from robotdemo.robot import MAX_GRASP_WIDTH_M, GripperPosture, hand_position_for_grasp
@@ -85,7 +85,8 @@ class SortingConfig:
 
     Attributes:
         environment: sensor environment profile for the emulation, ``"clean"`` or ``"fire"``.
-        confidence_threshold: below it the object is stroked again at another spot.
+        confidence_threshold: a stroke whose zone decision is less sure than this (the probability of the more
+            likely side, combustible or not) is followed by another stroke at another spot.
         max_strokes: strokes per object at most; after the last one the averaged probabilities decide.
         max_grasp_attempts: grasp attempts per object at most (a slip or drop costs one).
         trust_threshold: a modality whose gate weight alpha is at least this counts as trusted.
@@ -96,6 +97,10 @@ class SortingConfig:
         stroke_hover_m: hover height above the stroke start before pressing.
         stroke_press_speed_mps, stroke_contact_speed_mps, stroke_slow_zone_m: the press (see
             :class:`~controllers.stroke.StrokeConfig`).
+        stroke_settle_tolerance: the slide starts once the force has stayed within this fraction of the target
+            for the settle time. On a heavy, stiff block the force holds in steps some 15 % off the target
+            (the pad's contact points change), which a +-10 % band never accepts; the robot needs a steady
+            contact to classify, not an exact force.
         min_partial_slide_m: a stroke aborted during its slide after at least this much sliding is still
             classified (its trace holds the contact so far); a failed stroke is retried at the lowest force and
             speed.
@@ -105,7 +110,12 @@ class SortingConfig:
         grasp_tip_height_m: fingertip height above the object's bottom once closed (lower for thin objects:
             at most 45 % of the height, at least ``grasp_min_tip_height_m``, which keeps the tactile pad, 4 mm
             beyond the thumb's tip, off the table).
-        grasp_effort_nm: finger motor cap while holding, N m (None: the robot's default).
+        grasp_effort_nm: least finger motor cap while holding, N m (None: the robot's default).
+        grasp_effort_per_kg_nm: the cap grows with the object's estimated mass (its volume times the heaviest
+            nominal density of the predicted category), N m per kg, so a brass block is squeezed harder than
+            a cork one.
+        grasp_retry_gain: each retry after a slip or drop squeezes this much harder (0.5: x1.5, then x2).
+        grasp_max_effort_nm: the cap never exceeds this, N m (the thumb gets twice; the URDF allows 10 N m).
         pregrasp_clearance_m: fingertips this far above the object's top before descending.
         close_time_s: time the closing fingers get before the contacts are checked.
         carry_clearance_m: the carried object's bottom this far above the table during transport.
@@ -123,10 +133,14 @@ class SortingConfig:
         arm_velocity_scale: fraction of the URDF joint speeds the arm's moves use (when the machine builds its
             :class:`ArmMotion`).
         time_budget_s: per-state time budget (see :data:`DEFAULT_TIME_BUDGET_S`).
+        coarse_states: states simulated with the simulator's coarse steps (4 ms instead of 1 ms; see
+            :meth:`robotdemo.sim.Simulator.use_coarse_steps`): the arm moving with nothing in hand. Pressing and
+            stroking (the measurement), grasping, carrying and releasing stay fine: carried at 4 ms steps, a
+            1.1 kg brass cylinder slipped out of the fingers on every lift that held it at 1 ms.
     """
 
     environment: str = "fire"
-    confidence_threshold: float = 0.6
+    confidence_threshold: float = 0.85
     max_strokes: int = 3
     max_grasp_attempts: int = 3
     trust_threshold: float = 0.05
@@ -139,6 +153,7 @@ class SortingConfig:
     stroke_press_speed_mps: float = 0.02
     stroke_contact_speed_mps: float = 0.005
     stroke_slow_zone_m: float = 0.002
+    stroke_settle_tolerance: float = 0.2
     min_partial_slide_m: float = 0.01
     grasp_clearance_m: float = 0.012
     grasp_min_clearance_m: float = 0.006
@@ -146,6 +161,9 @@ class SortingConfig:
     grasp_tip_height_m: float = 0.012
     grasp_min_tip_height_m: float = 0.008
     grasp_effort_nm: float | None = None
+    grasp_effort_per_kg_nm: float = 4.0
+    grasp_retry_gain: float = 0.5
+    grasp_max_effort_nm: float = 5.0
     pregrasp_clearance_m: float = 0.05
     close_time_s: float = 0.5
     carry_clearance_m: float = 0.08
@@ -162,6 +180,8 @@ class SortingConfig:
     finger_room_m: float = 0.03
     arm_velocity_scale: float = 0.8
     time_budget_s: Mapping[State, float] = field(default_factory=lambda: DEFAULT_TIME_BUDGET_S)
+    coarse_states: frozenset[State] = frozenset({State.SELECT_OBJECT, State.APPROACH, State.CLASSIFY, State.RETREAT,
+                                                 State.DONE})
 
     def __post_init__(self) -> None:
         if self.environment not in ENVIRONMENTS:
@@ -241,8 +261,11 @@ class ObjectDecision:
         name: the object's name.
         true_category, true_instance: its material (ground truth; not used by the machine's decisions).
         true_combustible: the ground-truth combustible flag.
-        predicted_category: the classifier's decision, ``None`` until classified.
+        predicted_category: the most probable category on the side (combustible or not) the robot chose,
+            ``None`` until classified.
         confidence: probability of ``predicted_category`` (averaged over strokes).
+        combustible_probability: P(combustible), the summed probabilities of the combustible categories
+            averaged over strokes; the zone is the combustible one when it is at least 0.5.
         probabilities: category -> probability (averaged over strokes).
         gate_weights: modality -> fusion weight alpha (averaged over strokes).
         trusted_sensors: modalities with alpha >= ``trust_threshold`` (those present when the classifier gives
@@ -263,6 +286,7 @@ class ObjectDecision:
     true_combustible: bool
     predicted_category: str | None = None
     confidence: float = 0.0
+    combustible_probability: float | None = None
     probabilities: Mapping[str, float] = field(default_factory=dict)
     gate_weights: Mapping[str, float] = field(default_factory=dict)
     trusted_sensors: tuple[str, ...] = ()
@@ -285,6 +309,8 @@ class ObjectDecision:
         return {
             "name": self.name, "true_category": self.true_category, "true_instance": self.true_instance,
             "predicted_category": self.predicted_category, "confidence": round(self.confidence, 4),
+            "combustible_probability": (None if self.combustible_probability is None
+                                        else round(self.combustible_probability, 4)),
             "probabilities": {k: round(v, 4) for k, v in self.probabilities.items()},
             "gate_weights": {k: round(v, 4) for k, v in self.gate_weights.items()},
             "trusted_sensors": list(self.trusted_sensors), "modalities_present": list(self.modalities_present),
@@ -384,7 +410,8 @@ def plan_stroke(geometry: RestingGeometry, config: SortingConfig, rng: np.random
                         direction_rad=float(math.atan2(direction[1], direction[0])),
                         start_point_m=tuple(float(v) for v in start), approach_height_m=config.stroke_hover_m,
                         press_speed_mps=config.stroke_press_speed_mps,
-                        contact_speed_mps=config.stroke_contact_speed_mps, slow_zone_m=config.stroke_slow_zone_m)
+                        contact_speed_mps=config.stroke_contact_speed_mps, slow_zone_m=config.stroke_slow_zone_m,
+                        settle_tolerance=config.stroke_settle_tolerance)
 
 
 def hand_yaw_rotation(yaw_rad: float) -> np.ndarray:
@@ -440,7 +467,13 @@ class SortingMachine:
         self.sim = scene.sim
         self.dt = self.motion.config.control_period_s
         self.environment = ENVIRONMENTS[config.environment]
-        self.combustible = default_catalogue().combustible
+        catalogue = default_catalogue()
+        self.combustible = catalogue.combustible
+        self._category_density: dict[str, float] = {}
+        """Heaviest nominal density of each category, kg/m^3 (the grip is sized for the heaviest it may be)."""
+        for material in catalogue.instances.values():
+            self._category_density[material.category] = max(self._category_density.get(material.category, 0.0),
+                                                            material.density_kg_m3.nominal)
         self.hand_link = self.robot.link_index["gripper_base"]
         self.thumb_links = {self.robot.link_index[f"finger0_{s}"] for s in ("proximal", "distal", "tip")}
         self.finger_links = set(self.robot.finger_links) - self.thumb_links
@@ -502,8 +535,9 @@ class SortingMachine:
         """Advance exactly one control tick (the physics steps ``control_period_s``). Returns the state after it."""
         if self.done:
             return self.state
-        steps_before = self.sim.steps
+        time_before = self.sim.time_s
         state = self.state
+        self.sim.use_coarse_steps(state in self.config.coarse_states)
         budget = self._budget(state)
         if state not in (State.DONE, State.RETREAT) and self.state_time_s > budget + 1e-9:
             self._fail(f"{state.value} exceeded its time budget of {budget:g} s")
@@ -514,11 +548,11 @@ class SortingMachine:
              State.RELEASE: self._release, State.RETREAT: self._retreat}[state]()
             if state is State.RETREAT and self.state is State.RETREAT and self.state_time_s > budget:
                 self._finish_object(f"retreat exceeded its time budget of {budget:g} s")
-        stepped = self.sim.steps - steps_before
-        if stepped == 0:
-            self.sim.step(self.motion.substeps)
-        elif stepped != self.motion.substeps:
-            raise RobotDemoError(f"internal: state {state.value} stepped {stepped} physics steps in one tick")
+        stepped_s = self.sim.time_s - time_before
+        if stepped_s == 0.0:
+            self.sim.advance(self.dt)
+        elif abs(stepped_s - self.dt) > 1e-9:
+            raise RobotDemoError(f"internal: state {state.value} stepped {stepped_s} s of physics in one tick")
         self.tick += 1
         self.state_time_s += self.dt
         return self.state
@@ -744,9 +778,10 @@ class SortingMachine:
             result_c = _flatten(result_c)
         self._classifications.append(result_c)
         taken = self.decisions[obj.name].strokes_taken
-        summary = (f"stroke {taken}: {result_c.category} ({result_c.confidence:.2f}), sensors "
-                   f"{'+'.join(record.present)}")
-        if result_c.confidence < self.config.confidence_threshold and taken < self.config.max_strokes:
+        zone_c = decide_zone(result_c, self.combustible)
+        summary = (f"stroke {taken}: {zone_c.category} ({result_c.probabilities.get(zone_c.category, 0.0):.2f}), "
+                   f"P(combustible) {zone_c.combustible_probability:.2f}, sensors {'+'.join(record.present)}")
+        if zone_c.confidence < self.config.confidence_threshold and taken < self.config.max_strokes:
             problem = self._plan_next_stroke(resting_geometry(self.scene, obj))
             if not problem:
                 self._enter(State.APPROACH, f"{summary}: below {self.config.confidence_threshold:.2f}; "
@@ -760,12 +795,16 @@ class SortingMachine:
             trusted = tuple(m for m in MODALITIES if decision.gate_weights.get(m, 0.0) >= self.config.trust_threshold)
         else:
             trusted = decision.modalities_present
-        zone = self.scene.zone_for(bool(self.combustible[decision.category]))
-        self._update(predicted_category=decision.category, confidence=float(decision.confidence),
-                     probabilities=dict(decision.probabilities), gate_weights=dict(decision.gate_weights),
+        side = decide_zone(decision, self.combustible)
+        zone = self.scene.zone_for(side.combustible)
+        confidence = float(decision.probabilities.get(side.category, decision.confidence))
+        self._update(predicted_category=side.category, confidence=confidence,
+                     combustible_probability=side.combustible_probability, probabilities=dict(decision.probabilities),
+                     gate_weights=dict(decision.gate_weights),
                      trusted_sensors=trusted, modalities_present=decision.modalities_present, target_zone=zone.name)
         averaged = " (averaged over strokes)" if len(self._classifications) > 1 else ""
-        self._enter(State.PRE_GRASP, f"{summary}; decided {decision.category} ({decision.confidence:.2f}){averaged} "
+        self._enter(State.PRE_GRASP, f"{summary}; decided {side.category} ({confidence:.2f}, P(combustible) "
+                                     f"{side.combustible_probability:.2f}){averaged} "
                                      f"-> {zone.name} zone; trusted {'+'.join(trusted) or 'none'}")
 
     # -- PRE_GRASP, GRASP --------------------------------------------------------------------------------------------
@@ -820,7 +859,13 @@ class SortingMachine:
         attempt = self.decisions[obj.name].grasp_attempts
         if self.faults.applies_to(obj.name) and attempt <= self.faults.weak_grasp_attempts:
             return self.faults.weak_grasp_effort_nm
-        return self.config.grasp_effort_nm
+        cfg = self.config
+        base = cfg.grasp_effort_nm if cfg.grasp_effort_nm is not None else self.robot.config.grasp_effort_nm
+        g = self._grasp.geometry
+        category = self.decisions[obj.name].predicted_category
+        mass_kg = g.long_m * g.short_m * g.height_m * self._category_density.get(category, 0.0)
+        effort = max(base, cfg.grasp_effort_per_kg_nm * mass_kg) * (1.0 + cfg.grasp_retry_gain * (attempt - 1))
+        return float(min(effort, max(cfg.grasp_max_effort_nm, base)))
 
     def _grasp_step(self) -> None:
         act, grasp = self._activity, self._grasp

@@ -166,6 +166,7 @@ class StrokeExecution:
     def __init__(self, scene: Scene, motion: ArmMotion, obj: SceneObject, config: StrokeConfig,
                  max_time_s: float = 20.0) -> None:
         self.scene, self.motion, self.obj, self.config = scene, motion, obj, config
+        scene.sim.use_coarse_steps(False)  # the stroke is the measurement: every contact at the fine step
         self.max_ticks = int(max_time_s / motion.config.control_period_s)
         self.controller = StrokeController(config, scene.robot.tool_state().position_m)
         self.q = scene.robot.arm_q()
@@ -224,7 +225,7 @@ class StrokeExecution:
         obj_state = sim.link_state(self.obj.body, -1)
         velocity_w = pad.linear_velocity_mps - obj_state.linear_velocity_mps
         accel_w = (np.zeros(3) if self._prev_velocity is None
-                   else (pad.linear_velocity_mps - self._prev_velocity) / sim.config.time_step_s)
+                   else (pad.linear_velocity_mps - self._prev_velocity) / sim.time_step_s)
         self._prev_velocity = pad.linear_velocity_mps
         valid = np.zeros(RAW_CONTACT_POINTS, bool)
         normal = np.zeros(RAW_CONTACT_POINTS)

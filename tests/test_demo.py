@@ -21,6 +21,7 @@ from perception.tactile import ENVIRONMENTS, emulate_stroke
 from robotdemo import sorting
 from robotdemo.classifier import Classification, TouchFormerClassifier
 from robotdemo.cli import main
+from robotdemo.classifier import OracleClassifier
 from robotdemo.demo import run_demo_bench
 from robotdemo.errors import SimulationError
 
@@ -75,7 +76,8 @@ def test_demo_runs_end_to_end_and_writes_the_report(tiny_checkpoint, tmp_path, c
     report = json.loads(report_path.read_text())
     assert report["status"] == "done" and report["error"] is None
     (obj,) = report["objects"]
-    for key in ("true_category", "true_instance", "predicted_category", "confidence", "gate_weights",
+    for key in ("true_category", "true_instance", "predicted_category", "confidence", "combustible_probability",
+                "gate_weights",
                 "trusted_sensors", "strokes_taken", "zone_reached", "success", "failure_reason"):
         assert key in obj
     assert obj["true_category"] == obj["predicted_category"] == "rubber"
@@ -121,3 +123,10 @@ def test_demo_bench_reports_medians_over_seeds():
     result = run_demo_bench(seeds=2, n_objects=0, classifier=oracle)
     assert result["seeds"] == 2 and len(result["runs"]) == 2 and result["classifier"] == "passed in"
     assert set(result["median"]) == {"sorting_accuracy", "grasp_success_rate", "wall_s", "sim_s", "real_time_factor"}
+
+
+def test_oracle_classifier_answers_the_true_label_for_diagnosis():
+    record = _record(drop=("sound",))
+    result = OracleClassifier()(record)
+    assert result.category == record.category and result.confidence == 1.0
+    assert sum(result.probabilities.values()) == 1.0 and result.gate_weights["sound"] == 0.0

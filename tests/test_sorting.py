@@ -11,7 +11,7 @@ import pytest
 
 from perception.materials import default_catalogue
 from perception.streams import MODALITIES, StrokeRecord
-from robotdemo.classifier import Classification, average_classifications
+from robotdemo.classifier import Classification, average_classifications, decide_zone
 from robotdemo.scene import Scene, SceneConfig
 from robotdemo.sorting import FaultInjector, SortingConfig, SortingMachine, State
 
@@ -51,9 +51,9 @@ def _run(scene_config: SceneConfig, faults: FaultInjector = FaultInjector(), see
         phases: set = set()
         one_tick = True
         for _ in range(max_ticks):
-            steps_before = scene.sim.steps
+            time_before = scene.sim.time_s
             state = machine.step()
-            one_tick &= scene.sim.steps - steps_before == machine.motion.substeps
+            one_tick &= abs(scene.sim.time_s - time_before - machine.dt) < 1e-9
             if states[-1] is not state:
                 states.append(state)
             if machine.current_object is not None:
@@ -178,3 +178,15 @@ def test_average_classifications_decides_from_mean_probabilities():
     assert mean.category == "metal" and mean.confidence == pytest.approx(0.55)
     assert mean.gate_weights == {"sound": 0.75, "normal": 0.25}
     assert mean.modalities_present == ("sound", "normal")
+
+
+def test_zone_follows_the_summed_probability_of_each_side():
+    combustible = default_catalogue().combustible
+    # wood is the single most probable category, but metal + stone together outweigh everything that burns
+    spread = Classification("wood", 0.4, {"wood": 0.4, "metal": 0.35, "stone": 0.25}, {}, ("sound",))
+    side = decide_zone(spread, combustible)
+    assert not side.combustible and side.category == "metal"
+    assert side.combustible_probability == pytest.approx(0.4) and side.confidence == pytest.approx(0.6)
+    sure = Classification("paper", 0.9, {"paper": 0.9, "metal": 0.1}, {}, ("sound",))
+    side = decide_zone(sure, combustible)
+    assert side.combustible and side.category == "paper" and side.confidence == pytest.approx(0.9)
