@@ -56,6 +56,10 @@ class ArmMotion:
         self.pad_kin = ArmKinematics(robot.urdf, TOOL_FRAME, ARM_JOINTS, stroke_lock)
         self.hand_kin = ArmKinematics(robot.urdf, GRASP_FRAME, ARM_JOINTS)
         self.pad_ik = IKSolver(self.pad_kin, IKConfig())
+        self.force_ik = IKSolver(self.pad_kin, IKConfig(position_tolerance_m=1e-7, orientation_tolerance_rad=1e-6))
+        """Pad IK for force control: converged to 0.1 um. At the default 10 um tolerance a small change of the
+        target returned the previous joints unchanged, so the pad moved in 10 um steps, which on a stiff
+        object (1e5 N/m and more) are force steps of 1 N and more: the force loop chattered and never settled."""
         self.hand_ik = IKSolver(self.hand_kin, IKConfig())
         self.limits = JointMotionLimits.from_urdf_limits(self.pad_kin.lower_limits_rad, self.pad_kin.upper_limits_rad,
                                                          self.pad_kin.velocity_limits_radps, config.velocity_scale)

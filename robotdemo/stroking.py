@@ -211,7 +211,7 @@ class StrokeExecution:
             self.slide_end = self.actual[-1]
         if command.done or command.failed:
             return True
-        self.q = motion.pad_ik.solve_local(motion.to_base(command.position_m, command.rotation), self.q).q
+        self.q = motion.force_ik.solve_local(motion.to_base(command.position_m, command.rotation), self.q).q
         robot.command_arm(self.q)
         for _ in range(motion.substeps):
             self.scene.sim.step()
