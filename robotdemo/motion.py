@@ -34,8 +34,8 @@ class MotionConfig:
     """Control-loop settings.
 
     Attributes:
-        control_period_s: one control tick (IK + motor targets); a multiple of both physics steps (fine and
-            coarse, see :class:`robotdemo.sim.SimConfig`).
+        control_period_s: one control tick (IK + motor targets); a multiple of every physics step mode
+            (see :class:`robotdemo.sim.SimConfig`).
         velocity_scale: fraction of the URDF joint speeds used by joint-space moves.
     """
 

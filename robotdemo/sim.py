@@ -20,6 +20,17 @@ from robotdemo.errors import AssetError, SimulationError
 
 
 @dataclass(frozen=True)
+class StepMode:
+    """A physics step length (s, a multiple of the fine step) and the solver iterations per step."""
+
+    time_step_s: float
+    solver_iterations: int
+
+
+STEP_MODES = ("fine", "free")
+
+
+@dataclass(frozen=True)
 class SimConfig:
     """Physics settings.
 
@@ -30,9 +41,10 @@ class SimConfig:
         pad slid over the objects with almost no friction reported (1e-3 N against 1.3 N expected).
         solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
             default 1e-7; at 1e-5 and above the force loop on a hard block no longer settles within +-10 %).
-        coarse_time_step_s, coarse_solver_iterations: the physics step and iterations of the coarse mode
-            (:meth:`Simulator.use_coarse_steps`), for free motion and carrying, where nothing needs the 1 ms
-            resolution of a pad pressing on a surface. A multiple of ``time_step_s``.
+        free_step: the ``"free"`` step mode, for the arm moving with nothing in hand (no contact to resolve).
+        The modes are switched with :meth:`Simulator.use_step_mode`; ``"fine"`` is ``time_step_s`` with
+        ``solver_iterations``, what pressing, stroking and holding need (a 1.1 kg brass cylinder carried at
+        2 ms or 4 ms steps slipped out of the fingers; at 1 ms it held).
         gravity_mps2: gravity along world -z.
         gui: open PyBullet's own GUI window instead of running headless (DIRECT).
     """
@@ -40,8 +52,7 @@ class SimConfig:
     time_step_s: float = 1.0 / 1000.0
     solver_iterations: int = 100
     solver_residual_threshold: float = 1e-7
-    coarse_time_step_s: float = 4.0 / 1000.0
-    coarse_solver_iterations: int = 100
+    free_step: StepMode = StepMode(time_step_s=4.0 / 1000.0, solver_iterations=100)
     gravity_mps2: float = 9.81
     contact_erp: float = 0.2
     friction_erp: float = 0.2
@@ -141,11 +152,12 @@ class Simulator:
             numSubSteps=0, deterministicOverlappingPairs=1, solverResidualThreshold=config.solver_residual_threshold, contactERP=config.contact_erp,
             frictionERP=config.friction_erp, contactSlop=config.contact_slop_m, enableConeFriction=1,
             physicsClientId=self.client)
-        if config.coarse_time_step_s < config.time_step_s:
-            raise ValueError("SimConfig.coarse_time_step_s must not be shorter than time_step_s")
+        if config.free_step.time_step_s < config.time_step_s or config.free_step.solver_iterations < 1:
+            raise ValueError("SimConfig.free_step must not be shorter than time_step_s, and must iterate")
         self.time_s = 0.0
         self.steps = 0
-        self.coarse = False
+        self.step_mode = "fine"
+        self._modes = {"fine": StepMode(config.time_step_s, config.solver_iterations), "free": config.free_step}
         self._mode_start_s = 0.0
         self._mode_steps = 0
 
@@ -198,21 +210,21 @@ class Simulator:
     # -- stepping ---------------------------------------------------------------------------------------------
     @property
     def time_step_s(self) -> float:
-        """The physics step in use now, s (``coarse_time_step_s`` in the coarse mode)."""
-        return self.config.coarse_time_step_s if self.coarse else self.config.time_step_s
+        """The physics step in use now, s."""
+        return self._modes[self.step_mode].time_step_s
 
-    def use_coarse_steps(self, coarse: bool) -> None:
-        """Switch between the fine mode (``time_step_s``, ``solver_iterations``: contact that is measured or
-        must be resolved finely) and the coarse mode (``coarse_time_step_s``, ``coarse_solver_iterations``)."""
-        if coarse == self.coarse:
+    def use_step_mode(self, mode: str) -> None:
+        """Switch the physics step: ``"fine"`` (``time_step_s``, ``solver_iterations``: contact that is measured
+        or must be resolved finely) or ``"free"`` (``free_step``)."""
+        if mode not in self._modes:
+            raise ValueError(f"unknown step mode {mode!r}; expected one of {STEP_MODES}")
+        if mode == self.step_mode:
             return
         self._mode_start_s, self._mode_steps = self.time_s, 0
-        self.coarse = coarse
-        c = self.config
-        p.setPhysicsEngineParameter(
-            fixedTimeStep=self.time_step_s,
-            numSolverIterations=c.coarse_solver_iterations if coarse else c.solver_iterations,
-            physicsClientId=self.client)
+        self.step_mode = mode
+        p.setPhysicsEngineParameter(fixedTimeStep=self._modes[mode].time_step_s,
+                                    numSolverIterations=self._modes[mode].solver_iterations,
+                                    physicsClientId=self.client)
 
     def step(self, n: int = 1) -> None:
         """``n`` physics steps of the current mode."""

@@ -51,6 +51,7 @@ from robotdemo.errors import RobotDemoError
 from robotdemo.motion import DOWN, ArmMotion, JointMove, MotionConfig
 from robotdemo.robot import MAX_GRASP_WIDTH_M, GripperPosture, hand_position_for_grasp
 from robotdemo.scene import Scene, SceneObject, Zone
+from robotdemo.sim import STEP_MODES
 from robotdemo.stroking import StrokeExecution, StrokeResult
 
 Classifier = Callable[[StrokeRecord], Classification]
@@ -77,6 +78,12 @@ DEFAULT_TIME_BUDGET_S: Mapping[State, float] = MappingProxyType({
     State.RELEASE: 3.0, State.RETREAT: 6.0,
 })
 """Longest simulated time each state may take for one object, s (re-entering a state restarts its clock)."""
+
+DEFAULT_STEP_MODES: Mapping[State, str] = MappingProxyType({
+    State.SELECT_OBJECT: "free", State.APPROACH: "free", State.CLASSIFY: "free", State.RETREAT: "free",
+    State.DONE: "free",
+})
+"""Physics step mode per state (the others are fine): see ``SortingConfig.step_modes``."""
 
 
 @dataclass(frozen=True)
@@ -133,10 +140,10 @@ class SortingConfig:
         arm_velocity_scale: fraction of the URDF joint speeds the arm's moves use (when the machine builds its
             :class:`ArmMotion`).
         time_budget_s: per-state time budget (see :data:`DEFAULT_TIME_BUDGET_S`).
-        coarse_states: states simulated with the simulator's coarse steps (4 ms instead of 1 ms; see
-            :meth:`robotdemo.sim.Simulator.use_coarse_steps`): the arm moving with nothing in hand. Pressing and
-            stroking (the measurement), grasping, carrying and releasing stay fine: carried at 4 ms steps, a
-            1.1 kg brass cylinder slipped out of the fingers on every lift that held it at 1 ms.
+        step_modes: the simulator's step mode per state (:meth:`robotdemo.sim.Simulator.use_step_mode`;
+            states not listed are ``"fine"``): ``"free"`` (4 ms) while the arm moves with nothing in hand.
+            Pressing and stroking (the measurement), grasping, carrying and releasing stay fine: carried at 4 ms
+            (or 2 ms) steps, a 1.1 kg brass cylinder slipped out of the fingers that held it at 1 ms.
     """
 
     environment: str = "fire"
@@ -180,8 +187,7 @@ class SortingConfig:
     finger_room_m: float = 0.03
     arm_velocity_scale: float = 0.8
     time_budget_s: Mapping[State, float] = field(default_factory=lambda: DEFAULT_TIME_BUDGET_S)
-    coarse_states: frozenset[State] = frozenset({State.SELECT_OBJECT, State.APPROACH, State.CLASSIFY, State.RETREAT,
-                                                 State.DONE})
+    step_modes: Mapping[State, str] = field(default_factory=lambda: DEFAULT_STEP_MODES)
 
     def __post_init__(self) -> None:
         if self.environment not in ENVIRONMENTS:
@@ -190,6 +196,9 @@ class SortingConfig:
             raise ValueError(f"confidence_threshold must lie in [0, 1], got {self.confidence_threshold}")
         if self.max_strokes < 1 or self.max_grasp_attempts < 1:
             raise ValueError("max_strokes and max_grasp_attempts must be >= 1")
+        bad = {state: mode for state, mode in self.step_modes.items() if mode not in STEP_MODES}
+        if bad:
+            raise ValueError(f"step_modes has unknown modes {bad}; expected one of {STEP_MODES}")
         unknown = set(self.time_budget_s) - set(State)
         if unknown:
             raise ValueError(f"time_budget_s has keys that are not states: {unknown}")
@@ -548,7 +557,7 @@ class SortingMachine:
             return self.state
         time_before = self.sim.time_s
         state = self.state
-        self.sim.use_coarse_steps(state in self.config.coarse_states)
+        self.sim.use_step_mode(self.config.step_modes.get(state, "fine"))
         budget = self._budget(state)
         if state not in (State.DONE, State.RETREAT) and self.state_time_s > budget + 1e-9:
             self._fail(f"{state.value} exceeded its time budget of {budget:g} s")

@@ -166,7 +166,7 @@ class StrokeExecution:
     def __init__(self, scene: Scene, motion: ArmMotion, obj: SceneObject, config: StrokeConfig,
                  max_time_s: float = 20.0) -> None:
         self.scene, self.motion, self.obj, self.config = scene, motion, obj, config
-        scene.sim.use_coarse_steps(False)  # the stroke is the measurement: every contact at the fine step
+        scene.sim.use_step_mode("fine")  # the stroke is the measurement: every contact at the fine step
         self.max_ticks = int(max_time_s / motion.config.control_period_s)
         self.controller = StrokeController(config, scene.robot.tool_state().position_m)
         self.q = scene.robot.arm_q()

@@ -67,21 +67,23 @@ def test_cli_reports_impossible_layout_in_one_line(capsys):
     assert err.startswith("robotdemo: error: cannot place 40 objects") and "\n" not in err
 
 
-def test_coarse_steps_keep_time_and_leave_resting_objects_at_rest():
-    """The coarse mode (4 ms steps, for free motion and carrying) advances the same simulated time in fewer
-    steps, switching back and forth does not disturb objects at rest, and the fine mode is restored exactly."""
+def test_free_steps_keep_time_and_leave_resting_objects_at_rest():
+    """The free mode (4 ms steps, for the arm moving with nothing in hand) advances the same simulated time in
+    fewer steps, switching back and forth does not disturb objects at rest, and the fine mode is restored."""
     with Scene(SceneConfig(n_objects=4, seed=6)) as scene:
         sim = scene.sim
         before = {o.name: scene.object_pose(o)[0] for o in scene.objects}
         t0, steps0 = sim.time_s, sim.steps
-        sim.use_coarse_steps(True)
+        sim.use_step_mode("free")
         assert sim.time_step_s == pytest.approx(0.004)
         sim.advance(0.2)
         assert sim.steps - steps0 == 50 and sim.time_s == pytest.approx(t0 + 0.2)
-        sim.use_coarse_steps(False)
+        sim.use_step_mode("fine")
         sim.advance(0.1)
         assert sim.steps - steps0 == 150 and sim.time_s == pytest.approx(t0 + 0.3)
         for obj in scene.objects:
             assert np.linalg.norm(scene.object_pose(obj)[0] - before[obj.name]) < 2e-4
         with pytest.raises(ValueError, match="whole physics steps"):
             sim.advance(0.0005)
+        with pytest.raises(ValueError, match="unknown step mode"):
+            sim.use_step_mode("turbo")
