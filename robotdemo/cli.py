@@ -63,8 +63,15 @@ def _cmd_plot_strokes(args: argparse.Namespace) -> int:
 def _cmd_train(args: argparse.Namespace) -> int:
     from perception.train import TrainConfig, train_command
 
+    defaults = TrainConfig()
+    overrides = tuple((k, v) for k, v in (("dropout", args.dropout),) if v is not None)
     config = TrainConfig(model=args.model, task=args.task, epochs=args.epochs, batch_size=args.batch_size,
-                         seed=args.seed, device=args.device)
+                         seed=args.seed, device=args.device,
+                         lr=defaults.lr if args.lr is None else args.lr,
+                         weight_decay=defaults.weight_decay if args.weight_decay is None else args.weight_decay,
+                         feature_noise_std=(defaults.feature_noise_std if args.feature_noise is None
+                                            else args.feature_noise),
+                         model_overrides=overrides)
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
     print(json.dumps(metrics, indent=2, default=str))
@@ -185,6 +192,11 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--batch-size", type=int, default=32)
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--fold", type=int, default=0, help="usmc: which of the 5 folds to hold out")
+    train.add_argument("--lr", type=float, default=None, help="learning rate (default 3e-3)")
+    train.add_argument("--weight-decay", type=float, default=None, help="AdamW weight decay (default 0.01)")
+    train.add_argument("--feature-noise", type=float, default=None,
+                       help="augmentation noise on normalised features, training std units (default 0.05)")
+    train.add_argument("--dropout", type=float, default=None, help="the model's dropout (default: the model's)")
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
     train.add_argument("--quiet", action="store_true")
     train.set_defaults(func=_cmd_train)

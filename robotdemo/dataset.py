@@ -37,12 +37,12 @@ from perception.tactile import ENVIRONMENTS, emulate_stroke
 from robotdemo.errors import RobotDemoError
 from robotdemo.motion import ArmMotion, UnreachableError
 from robotdemo.robot import GripperPosture
-from robotdemo.scene import ObjectSpec, Scene, SceneConfig
-from robotdemo.stroking import StrokeExecution, move_pad_above, top_surface_point
+from robotdemo.scene import SHAPES, ObjectSpec, Scene, SceneConfig, draw_object_size
+from robotdemo.sorting import SortingConfig, plan_stroke, resting_geometry
+from robotdemo.stroking import StrokeExecution, move_pad_above
 
 FORMAT_NAME = "robotdemo-dataset"
 FORMAT_VERSION = 1
-PAD_HALF_M = 0.008
 
 
 @dataclass(frozen=True)
@@ -85,47 +85,11 @@ class ShardJob:
     file: str
 
 
-def _object_size(rng: np.random.Generator) -> tuple[str, tuple[float, float, float]]:
-    """Blocks, slabs and bars that rest stably under a stroke (height below the narrower side) and leave room
-    for slides; bars give the long, thin shapes whose bending modes fall in the audible band."""
-    kind = ("block", "slab", "bar")[int(rng.integers(3))]
-    if kind == "block":
-        x, y = rng.uniform(0.05, 0.08, size=2)
-        z = rng.uniform(0.025, 0.8 * min(x, y))
-    elif kind == "slab":
-        x, y, z = rng.uniform(0.07, 0.10), rng.uniform(0.05, 0.08), rng.uniform(0.015, 0.03)
-    else:
-        x, y, z = rng.uniform(0.10, 0.16), rng.uniform(0.035, 0.05), rng.uniform(0.015, 0.03)
-    return kind, (float(x), float(y), float(z))
-
-
-def _stroke_config(obj_size_m: tuple[float, float, float], top_center: np.ndarray, yaw_rad: float,
-                   config: DatasetConfig, rng: np.random.Generator) -> tuple[StrokeConfig, dict]:
-    """Draw force, speed, length, direction and start so the whole slide stays on the top face."""
-    force = float(rng.uniform(*config.force_range_n))
-    speed = float(rng.uniform(*config.speed_range_mps))
-    direction_obj = float(rng.uniform(-math.pi, math.pi))
-    half = np.array(obj_size_m[:2]) / 2 - PAD_HALF_M - 0.003
-    d = np.array([math.cos(direction_obj), math.sin(direction_obj)])
-    # longest slide through the face along d: room from one side to the other
-    room = float(np.min(2 * half / np.maximum(np.abs(d), 1e-9)))
-    if room < config.length_range_m[0]:  # too narrow this way: slide along the long axis instead
-        direction_obj = 0.0 if half[0] >= half[1] else math.pi / 2
-        d = np.array([math.cos(direction_obj), math.sin(direction_obj)])
-        room = float(np.min(2 * half / np.maximum(np.abs(d), 1e-9)))
-    length = float(min(rng.uniform(*config.length_range_m), room))
-    # start anywhere such that start and end lie inside the face
-    lo = np.maximum(-half, -half - d * length)
-    hi = np.minimum(half, half - d * length)
-    start_obj = rng.uniform(lo, np.maximum(lo, hi))
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    start_world = top_center + np.array([c * start_obj[0] - s * start_obj[1], s * start_obj[0] + c * start_obj[1], 0.0])
-    stroke = StrokeConfig(target_force_n=force, speed_mps=speed, length_m=max(length, 0.02),
-                          direction_rad=direction_obj + yaw_rad, start_point_m=tuple(float(v) for v in start_world),
-                          approach_height_m=0.008, press_speed_mps=0.02, slow_zone_m=0.002, contact_speed_mps=0.004)
-    params = {"target_force_n": force, "speed_mps": speed, "length_m": stroke.length_m,
-              "direction_on_object_rad": direction_obj, "start_on_object_m": [float(v) for v in start_obj]}
-    return stroke, params
+def _stroke_planner(config: DatasetConfig) -> SortingConfig:
+    """The sorting robot's stroke planning (:func:`robotdemo.sorting.plan_stroke`: spot, direction, the slide
+    kept on the face and, on tall objects, behind the centre) with the data set's wider parameter ranges."""
+    return SortingConfig(stroke_force_n=config.force_range_n, stroke_speed_mps=config.speed_range_mps,
+                         stroke_length_m=config.length_range_m)
 
 
 def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalogue | None = None) -> list[StrokeRecord]:
@@ -136,16 +100,18 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
     rng = np.random.default_rng(seq)
     env = ENVIRONMENTS[config.env]
     records: list[StrokeRecord] = []
+    planner = _stroke_planner(config)
     per_object = [len(a) for a in np.array_split(np.arange(config.strokes_per_instance), config.objects_per_instance)]
     for obj_index, n_strokes in enumerate(per_object):
         if n_strokes == 0:
             continue
         object_seed = int(rng.integers(2**31))
         obj_rng = np.random.default_rng(object_seed)
-        kind, size = _object_size(obj_rng)
+        kind = SHAPES[int(obj_rng.integers(len(SHAPES)))]  # the sorting scene's shapes and sizes
+        size = draw_object_size(kind, obj_rng)
         sample = sample_material(material, obj_rng)
-        shape = "box"
-        spec = ObjectSpec(name=f"{job.instance}_{obj_index}", shape="slab" if kind != "block" else "box", size_m=size,
+        shape = "cylinder" if kind == "cylinder" else "box"
+        spec = ObjectSpec(name=f"{job.instance}_{obj_index}", shape=kind, size_m=size,
                           xy_m=(float(obj_rng.uniform(-0.26, -0.16)), float(obj_rng.uniform(-0.08, 0.08))),
                           yaw_rad=float(obj_rng.uniform(-math.pi / 2, math.pi / 2)), material=sample,
                           dynamics=contact_dynamics(sample, size, shape))
@@ -159,11 +125,11 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
             attempts = 0
             while done < n_strokes and attempts < n_strokes * config.max_attempts_per_stroke:
                 attempts += 1
-                top = top_surface_point(scene, obj)
                 center_before, _ = scene.object_pose(obj)
-                _, orn = scene.object_pose(obj)
-                yaw = 2.0 * math.atan2(orn[2], orn[3])
-                stroke, params = _stroke_config(size, top, yaw, config, rng)
+                stroke = plan_stroke(resting_geometry(scene, obj), planner, rng)
+                params = {"target_force_n": stroke.target_force_n, "speed_mps": stroke.speed_mps,
+                          "length_m": stroke.length_m, "direction_rad": stroke.direction_rad,
+                          "start_point_m": [float(v) for v in stroke.start_point_m]}
                 stroke_seed = int(rng.integers(2**31))
                 try:
                     move_pad_above(scene, motion, stroke)

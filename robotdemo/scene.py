@@ -123,7 +123,8 @@ class SceneObject:
         return self.spec.material.combustible
 
 
-def _draw_size(shape: str, rng: np.random.Generator) -> tuple[float, float, float]:
+def draw_object_size(shape: str, rng: np.random.Generator) -> tuple[float, float, float]:
+    """Full extents (x, y, z), m, of a ``box``, upright ``cylinder`` (diameter, diameter, height) or ``slab``."""
     if shape == "box":
         return (float(rng.uniform(0.04, 0.07)), float(rng.uniform(0.04, 0.07)), float(rng.uniform(0.035, 0.07)))
     if shape == "cylinder":
@@ -142,7 +143,7 @@ def plan_objects(config: SceneConfig, catalogue: MaterialCatalogue, rng: np.rand
     specs: list[ObjectSpec] = []
     for i in range(config.n_objects):
         shape = config.shapes[int(rng.integers(len(config.shapes)))]
-        size = _draw_size(shape, rng)
+        size = draw_object_size(shape, rng)
         material = sample_material(instances[int(rng.integers(len(instances)))], rng)
         yaw = float(rng.uniform(-math.pi / 4, math.pi / 4))
         specs.append(ObjectSpec(name=f"object{i}_{material.instance}", shape=shape, size_m=size, xy_m=(0.0, 0.0),
