@@ -37,7 +37,7 @@ from perception.tactile import ENVIRONMENTS, emulate_stroke
 from robotdemo.errors import RobotDemoError
 from robotdemo.motion import ArmMotion, UnreachableError
 from robotdemo.robot import GripperPosture
-from robotdemo.scene import SHAPES, ObjectSpec, Scene, SceneConfig, draw_object_size
+from robotdemo.scene import SHAPES, ObjectSpec, Scene, SceneConfig, body_shape, draw_object_size
 from robotdemo.sorting import SortingConfig, plan_stroke, resting_geometry
 from robotdemo.stroking import StrokeExecution, move_pad_above
 
@@ -110,7 +110,7 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
         kind = SHAPES[int(obj_rng.integers(len(SHAPES)))]  # the sorting scene's shapes and sizes
         size = draw_object_size(kind, obj_rng)
         sample = sample_material(material, obj_rng)
-        shape = "cylinder" if kind == "cylinder" else "box"
+        shape = body_shape(kind)
         spec = ObjectSpec(name=f"{job.instance}_{obj_index}", shape=kind, size_m=size,
                           xy_m=(float(obj_rng.uniform(-0.26, -0.16)), float(obj_rng.uniform(-0.08, 0.08))),
                           yaw_rad=float(obj_rng.uniform(-math.pi / 2, math.pi / 2)), material=sample,

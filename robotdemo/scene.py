@@ -123,6 +123,11 @@ class SceneObject:
         return self.spec.material.combustible
 
 
+def body_shape(shape: str) -> str:
+    """The solid a scene shape is for physics, contact and sound: ``"cylinder"``, or ``"box"`` (boxes, slabs)."""
+    return "cylinder" if shape == "cylinder" else "box"
+
+
 def draw_object_size(shape: str, rng: np.random.Generator) -> tuple[float, float, float]:
     """Full extents (x, y, z), m, of a ``box``, upright ``cylinder`` (diameter, diameter, height) or ``slab``."""
     if shape == "box":
@@ -148,7 +153,7 @@ def plan_objects(config: SceneConfig, catalogue: MaterialCatalogue, rng: np.rand
         yaw = float(rng.uniform(-math.pi / 4, math.pi / 4))
         specs.append(ObjectSpec(name=f"object{i}_{material.instance}", shape=shape, size_m=size, xy_m=(0.0, 0.0),
                                 yaw_rad=yaw, material=material,
-                                dynamics=contact_dynamics(material, size, "cylinder" if shape == "cylinder" else "box")))
+                                dynamics=contact_dynamics(material, size, body_shape(shape))))
     # Positions: whole layouts are drawn until one has every pair of footprints apart by min_gap_m.
     for _layout in range(200):
         placed: list[ObjectSpec] = []
@@ -198,7 +203,7 @@ class Scene:
     def _create(self, spec: ObjectSpec) -> SceneObject:
         top = self.config.table_height_m
         half_yaw = 0.5 * spec.yaw_rad
-        geom = "box" if spec.shape in ("box", "slab") else "cylinder"
+        geom = body_shape(spec.shape)
         body = self.sim.create_primitive(geom, spec.size_m, spec.dynamics.mass_kg,
                                          (spec.xy_m[0], spec.xy_m[1], top + spec.size_m[2] / 2 + 0.0005),
                                          (0.0, 0.0, math.sin(half_yaw), math.cos(half_yaw)),
