@@ -36,8 +36,8 @@ def _cmd_scene(args: argparse.Namespace) -> int:
 def _cmd_dataset(args: argparse.Namespace) -> int:
     from robotdemo.dataset import DatasetConfig, generate_dataset
 
-    config = DatasetConfig(strokes_per_instance=args.strokes_per_instance, objects_per_instance=args.objects_per_instance,
-                           seed=args.seed, env=args.env,
+    objects = {} if args.objects_per_instance is None else {"objects_per_instance": args.objects_per_instance}
+    config = DatasetConfig(strokes_per_instance=args.strokes_per_instance, **objects, seed=args.seed, env=args.env,
                            categories=tuple(args.categories.split(",")) if args.categories else None)
     manifest = generate_dataset(args.out, config, workers=args.workers, progress=not args.quiet)
     n = sum(s["n_strokes"] for s in manifest["shards"])
@@ -168,7 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
     dataset = sub.add_parser("dataset", help="record the stroke data set (real strokes in PyBullet + sensor emulation)")
     dataset.add_argument("--out", required=True, help="output folder (resumed if it exists)")
     dataset.add_argument("--strokes-per-instance", type=int, default=30)
-    dataset.add_argument("--objects-per-instance", type=int, default=3)
+    dataset.add_argument("--objects-per-instance", type=int, default=None,
+                         help="distinct objects per material instance (default: DatasetConfig's, 10)")
     dataset.add_argument("--seed", type=int, default=0)
     dataset.add_argument("--workers", type=int, default=1)
     dataset.add_argument("--env", choices=["clean", "fire"], default="clean")

@@ -51,7 +51,9 @@ class DatasetConfig:
 
     Attributes:
         strokes_per_instance: strokes recorded per material instance (one shard per instance).
-        objects_per_instance: distinct physical objects per instance; strokes are spread over them.
+        objects_per_instance: distinct physical objects per instance; strokes are spread over them. Many
+            objects with few strokes each: the robot meets new objects, and a classifier trained on three
+            objects per instance learnt those objects (62.6 % on held-out strokes, 52 % on the demo's objects).
         seed: seeds everything (objects, poses, stroke parameters, sensor noise).
         env: sensor environment profile, ``clean`` or ``fire``.
         categories: restrict to these categories (``None``: all seven).
@@ -61,7 +63,7 @@ class DatasetConfig:
     """
 
     strokes_per_instance: int = 30
-    objects_per_instance: int = 3
+    objects_per_instance: int = 10
     seed: int = 0
     env: str = "clean"
     categories: tuple[str, ...] | None = None

@@ -268,9 +268,10 @@ class Simulator:
             st = p.getLinkState(body, link, computeLinkVelocity=1, computeForwardKinematics=1,
                                 physicsClientId=self.client)
             pos, orn, lin, ang = st[4], st[5], st[6], st[7]
-        state = LinkState(np.array(pos), np.array(orn), np.array(lin), np.array(ang))
-        self._check_finite(np.concatenate([state.position_m, state.linear_velocity_mps]), f"state of body {body} link {link}")
-        return state
+        if not all(map(math.isfinite, (*pos, *lin))):  # per value: ~10x cheaper than numpy on 6 numbers
+            raise SimulationError(f"simulation diverged: state of body {body} link {link} became NaN or inf "
+                                  f"at t={self.time_s:.3f} s")
+        return LinkState(np.array(pos), np.array(orn), np.array(lin), np.array(ang))
 
     def base_pose(self, body: int) -> tuple[np.ndarray, np.ndarray]:
         pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)

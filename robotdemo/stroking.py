@@ -145,6 +145,7 @@ def pad_normal_force_n(scene: Scene, obj: SceneObject) -> float:
 def move_pad_above(scene: Scene, motion: ArmMotion, config: StrokeConfig) -> np.ndarray:
     """Fold the hand into the stroke posture and move (Ruckig) so the pad hovers over the stroke's start."""
     robot = scene.robot
+    scene.sim.use_step_mode("free")  # nothing touched yet: the coarse step (the stroke itself switches to fine)
     robot.command_gripper(GripperPosture.stroke())
     hover = np.asarray(config.start_point_m) + config.normal() * config.approach_height_m
     above = hover + config.normal() * 0.03
@@ -236,9 +237,9 @@ class StrokeExecution:
             k = len(contacts)
             valid[:k] = True
             normal[:k] = [max(0.0, c.normal_force_n) for c in contacts]
-            rot_t = rot.T[:2]
-            on_pad[:k] = [rot_t @ (c.position_on_a_m - pad.position_m) for c in contacts]
-            shear[:k] = [rot_t @ c.shear_force_n for c in contacts]  # friction on the pad (body A), pad frame
+            to_pad = rot[:, :2]  # world -> pad frame (x, y): v @ to_pad
+            on_pad[:k] = (np.array([c.position_on_a_m for c in contacts]) - pad.position_m) @ to_pad
+            shear[:k] = np.array([c.shear_force_n for c in contacts]) @ to_pad  # friction on the pad (body A)
         rec.t_s.append(sim.time_s)
         rec.valid.append(valid)
         rec.normal.append(normal)

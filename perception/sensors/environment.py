@@ -64,8 +64,8 @@ FIRE = EnvironmentProfile(
     crackle_rms=(1e-3, 8e-3),
     alarm_probability=0.6,
     alarm_rms=(5e-4, 5e-3),
-    taxel_drift_scale=4.0,
-    heat_drift_counts_per_s=60.0,
+    taxel_drift_scale=2.0,
+    heat_drift_counts_per_s=5.0,
     accel_vibration_rms_mps2=(0.05, 0.4),
     dropout_probability=0.03,
 )
@@ -75,7 +75,14 @@ metal and stone sit from about 10 dB above to 10 dB below the fire. The paper's 
 accuracy to its environment noise (91.47 -> 89.54 SSMC, ../shared/reference/paper-facts.md). A first profile
 ten times louder, with each sensor dropping out in 10 % of strokes, buried metal and stone completely: the
 reference classifier fell from 72.8 % (clean) to 45.2 %, TouchFormer to 47.6 %. Dropout is "occasional":
-3 % per sensor, so about one stroke in nine loses one."""
+3 % per sensor, so about one stroke in nine loses one.
+
+Heat drift is set the same way, against the friction signal it disturbs. The pad is re-biased before each
+touch, so only the drift within one stroke (about 4 s) counts. A common drift of 5 counts/s (1 sigma) moves the
+shear summed over the 16 taxels by about 0.2 N in 4 s, some 15 % of the friction of a typical stroke (2.75 N
+at mu = 0.5); the per-taxel drift doubles. A first profile (60 counts/s, per-taxel drift x4) moved the summed
+forces by several newtons within a stroke, more than the friction of most strokes (docs/strokes.png at commit
+367fe16)."""
 
 ENVIRONMENTS: Mapping[str, EnvironmentProfile] = MappingProxyType({"clean": CLEAN, "fire": FIRE})
 
