@@ -275,13 +275,14 @@ def ssmc_split(records: Sequence[StrokeRecord], seed: int, test_fraction: float 
     return _complement(everything, test), test
 
 
-def fine_split(records: Sequence[StrokeRecord], seed: int, test_fraction: float = 0.3
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """Fine-grained: random train/test split by stroke, stratified by instance (paper: 7:3)."""
+def fine_split(records: Sequence[StrokeRecord], seed: int, test_fraction: float = 0.3,
+               group_by_object: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Fine-grained: random train/test split by stroke (or by object with ``group_by_object``), stratified by
+    instance (paper: 7:3)."""
     rng = np.random.default_rng(seed)
     labels = labels_of(records, "fine")
     everything = np.arange(len(records))
-    test = _stratified_pick(labels, _groups(records, False), everything, test_fraction, rng, "fine")
+    test = _stratified_pick(labels, _groups(records, group_by_object), everything, test_fraction, rng, "fine")
     return _complement(everything, test), test
 
 

@@ -96,6 +96,9 @@ class TrainConfig:
             :func:`predict`).
         corruption_std: corruption noise std in units of the per-channel training feature std.
         val_fraction: validation share of the training part (used by :func:`train_command`).
+        split_by_object: SSMC and fine-grained: keep all strokes of one physical object on one side of the
+            test split and of the validation split (stricter than the paper's split by stroke; what a robot
+            meeting new objects needs to be selected on). USMC always holds out whole instances.
         num_threads: torch CPU threads; 0 leaves torch's default.
         model_overrides: (field, value) pairs passed to the model config (e.g. (("d_model", 32),)).
         init_checkpoint: checkpoint folder to fine-tune from ("" trains from scratch); its norm stats and
@@ -118,6 +121,7 @@ class TrainConfig:
     corruption_ratio: float = 0.0
     corruption_std: float = 1.0
     val_fraction: float = 0.15
+    split_by_object: bool = False
     num_threads: int = 0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
@@ -482,31 +486,43 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
 # CLI entry
 
 
-def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, config: TrainConfig, fold: int = 0,
-                  n_folds: int = 5, command: str = "", progress: bool = True) -> dict[str, Any]:
-    """``robotdemo train``: load a data set, split it for ``config.task``, train, test the best epoch.
+def task_split(records: Sequence[StrokeRecord], config: TrainConfig, fold: int = 0, n_folds: int = 5
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(train, validation, test) indices of ``records`` for ``config.task``: SSMC and fine-grained use the 7:3
+    split seeded by ``config.seed`` (by object with ``config.split_by_object``), USMC fold ``fold`` of
+    ``n_folds``; the validation part is carved from the training part."""
+    from perception.dataset import fine_split, ssmc_split, usmc_folds, validation_split
 
-    SSMC and fine-grained use the 7:3 split seeded by ``config.seed``; USMC trains fold ``fold`` of
-    ``n_folds``. The validation part is carved from the training part. Writes ``out_dir/metrics.json``.
-
-    Returns:
-        {"test_accuracy", "test_g_mean", "n_train", "n_val", "n_test", "best_epoch", "checkpoint_dir", ...}.
-    """
-    from perception.dataset import fine_split, load_dataset, ssmc_split, usmc_folds, validation_split
-    from perception.evaluate import g_mean
-
-    data = load_dataset(data_dir)
-    records = data.records
+    by_object = config.split_by_object
     if config.task == "ssmc":
-        train_idx, test_idx = ssmc_split(records, config.seed)
+        train_idx, test_idx = ssmc_split(records, config.seed, group_by_object=by_object)
     elif config.task == "fine":
-        train_idx, test_idx = fine_split(records, config.seed)
+        train_idx, test_idx = fine_split(records, config.seed, group_by_object=by_object)
     else:
         folds = usmc_folds(records, k=n_folds, seed=config.seed)
         if not 0 <= fold < len(folds):
             raise TrainError(f"fold {fold} out of range for {len(folds)} folds")
         train_idx, test_idx = folds[fold]
-    train_idx, val_idx = validation_split(records, train_idx, config.task, config.seed, config.val_fraction)
+    train_idx, val_idx = validation_split(records, train_idx, config.task, config.seed, config.val_fraction,
+                                          group_by_object=by_object or None)
+    return train_idx, val_idx, test_idx
+
+
+def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, config: TrainConfig, fold: int = 0,
+                  n_folds: int = 5, command: str = "", progress: bool = True) -> dict[str, Any]:
+    """``robotdemo train``: load a data set, split it for ``config.task``, train, test the best epoch.
+
+    The split is :func:`task_split`'s. Writes ``out_dir/metrics.json``.
+
+    Returns:
+        {"test_accuracy", "test_g_mean", "n_train", "n_val", "n_test", "best_epoch", "checkpoint_dir", ...}.
+    """
+    from perception.dataset import load_dataset
+    from perception.evaluate import g_mean
+
+    data = load_dataset(data_dir)
+    records = data.records
+    train_idx, val_idx, test_idx = task_split(records, config, fold, n_folds)
     pick = lambda idx: [records[i] for i in idx]  # noqa: E731
     names = tuple(sorted(set(labels_of(records, config.task))))
     result = train(pick(train_idx), pick(val_idx), config, out_dir, progress, class_names=names,
@@ -520,6 +536,7 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
     metrics = {"task": config.task, "model": config.model, "fold": fold, "seed": config.seed,
                "test_accuracy": _accuracy(preds.pred, y), "test_g_mean": g_mean(y, preds.pred, range(len(names))),
                "n_train": len(train_idx), "n_val": len(val_idx), "n_test": len(test_idx),
+               "split_by_object": config.split_by_object,
                "best_epoch": result.best_epoch, "best_val_accuracy": result.best_val_accuracy,
                "checkpoint_dir": str(result.checkpoint_dir), "data_manifest_sha256": data.manifest_sha256}
     Path(out_dir, "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")

@@ -71,7 +71,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          weight_decay=defaults.weight_decay if args.weight_decay is None else args.weight_decay,
                          feature_noise_std=(defaults.feature_noise_std if args.feature_noise is None
                                             else args.feature_noise),
-                         model_overrides=overrides)
+                         split_by_object=args.split_by_object, model_overrides=overrides)
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
     print(json.dumps(metrics, indent=2, default=str))
@@ -198,6 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--feature-noise", type=float, default=None,
                        help="augmentation noise on normalised features, training std units (default 0.05)")
     train.add_argument("--dropout", type=float, default=None, help="the model's dropout (default: the model's)")
+    train.add_argument("--split-by-object", action="store_true",
+                       help="ssmc/fine: test and validation strokes come from objects not trained on")
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
     train.add_argument("--quiet", action="store_true")
     train.set_defaults(func=_cmd_train)

@@ -13,8 +13,8 @@ import torch
 from perception.checkpoint import load_checkpoint
 from perception.dataset import labels_of, ssmc_split, validation_split, write_dataset
 from perception.features import collate, feature_dims, featurize
-from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, featurize_records, predict, train,
-                              train_command)
+from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, featurize_records, predict,
+                              task_split, train, train_command)
 from tests.test_dataset import make_material_strokes
 
 TINY = {
@@ -143,3 +143,17 @@ def test_train_command_usmc(tmp_path):
     assert metrics["n_train"] + metrics["n_val"] + metrics["n_test"] == len(recs)
     assert 0.0 <= metrics["test_accuracy"] <= 1.0 and len(metrics["data_manifest_sha256"]) == 64
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["fold"] == 1
+
+
+@pytest.mark.parametrize("task", ["ssmc", "fine"])
+def test_split_by_object_keeps_objects_on_one_side(task):
+    recs = make_material_strokes(4, n_categories=2, n_instances=2, n_objects=6, n_strokes=2, duration_s=0.02)
+    objects = lambda idx: {(recs[i].instance, recs[i].meta["object_id"]) for i in idx}  # noqa: E731
+    train_idx, val_idx, test_idx = task_split(recs, TrainConfig(task=task, split_by_object=True))
+    assert sorted(np.concatenate([train_idx, val_idx, test_idx]).tolist()) == list(range(len(recs)))
+    assert len(val_idx) and len(test_idx)
+    assert not objects(train_idx) & objects(test_idx) and not objects(train_idx) & objects(val_idx)
+    assert not objects(val_idx) & objects(test_idx)
+    # the paper's split by stroke shares objects between the sides
+    train_s, _, test_s = task_split(recs, TrainConfig(task=task))
+    assert objects(train_s) & objects(test_s)
