@@ -161,8 +161,9 @@ def test_fire_is_noisier_than_clean():
             rec = _record(sample, seed=seed, env=env, slide_s=0.3)
             if rec.streams["sound"] is not None:
                 quiet[env].append(np.std(_window(rec, "sound", 0.05, 0.14)))
-    # roar, crackles and alarms on top of the room noise: several times louder before the pad touches down
-    assert np.median(quiet["fire"]) > 2.5 * np.median(quiet["clean"])
+    # roar, crackles and alarms on top of the room noise: louder before the pad touches down (about 3 dB:
+    # the fire is set against the quiet contact sound of metal, see perception.sensors.environment.FIRE)
+    assert np.median(quiet["fire"]) > 1.25 * np.median(quiet["clean"])
 
 
 def test_bad_inputs_raise_clear_errors():
