@@ -119,6 +119,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from perception.dataset import load_dataset
         from perception.reference_classifier import honesty_check
         result = {"data": args.data, **honesty_check(load_dataset(args.data).records, seed=args.seed)}
+    elif args.what == "classifier":
+        if not args.data:
+            raise RobotDemoError("bench classifier needs --data DIR (the data set the checkpoint was trained on)")
+        from robotdemo.benchmarks.classifier_bench import run_classifier_benchmark
+        from robotdemo.demo import DEFAULT_CHECKPOINT
+        result = run_classifier_benchmark(args.checkpoint or DEFAULT_CHECKPOINT, args.data)
     elif args.what == "stroke":
         from robotdemo.benchmarks.stroke_bench import run_stroke_benchmark
         result = run_stroke_benchmark()
@@ -215,10 +221,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(func=_cmd_evaluate)
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
-    bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo", "reference"])
+    bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo", "reference",
+                                         "classifier"])
     bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
-                       "demo: the classifier (default robotdemo/checkpoints/touchformer_fire)")
-    bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on")
+                       "demo, classifier: the classifier (default robotdemo/checkpoints/touchformer_fire)")
+    bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on; "
+                       "classifier: the data set the checkpoint was trained on (its held-out part is used)")
     bench.add_argument("--seeds", type=int, default=10, help="demo: number of seeds (fire environment)")
     bench.add_argument("--objects", type=int, default=6, help="demo: objects per seed")
     bench.add_argument("--oracle", action="store_true",

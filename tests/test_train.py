@@ -157,3 +157,25 @@ def test_split_by_object_keeps_objects_on_one_side(task):
     # the paper's split by stroke shares objects between the sides
     train_s, _, test_s = task_split(recs, TrainConfig(task=task))
     assert objects(train_s) & objects(test_s)
+
+
+def test_classifier_bench_scores_the_checkpoints_own_test_part(tmp_path):
+    from robotdemo.benchmarks.classifier_bench import run_classifier_benchmark
+    from robotdemo.errors import RobotDemoError
+
+    real = {"cat0": "metal", "cat1": "wood", "cat2": "stone"}  # the robot's classifier wants catalogue names
+    recs = [dataclasses.replace(r, category=real[r.category], instance=real[r.category] + r.instance[4:],
+                                combustible=real[r.category] == "wood")
+            for r in make_material_strokes(5, n_categories=3, n_instances=2, n_objects=4, n_strokes=2, duration_s=0.2)]
+    write_dataset(tmp_path / "ds", recs, env="clean", seed=5)
+    metrics = train_command(tmp_path / "ds", tmp_path / "run", _config(epochs=2, split_by_object=True),
+                            progress=False)
+    result = run_classifier_benchmark(tmp_path / "run" / "checkpoint", tmp_path / "ds")
+    assert result["n_test"] == metrics["n_test"] and result["split_by_object"]
+    assert result["category_accuracy"] == pytest.approx(metrics["test_accuracy"], abs=1e-4)
+    assert 0.0 <= result["zone_accuracy"] <= 1.0
+    band = result["by_threshold"][0]
+    assert 0.0 <= band["share_at_or_above"] <= 1.0
+    write_dataset(tmp_path / "other", recs[:-1], env="clean", seed=5)
+    with pytest.raises(RobotDemoError, match="trained on another data set"):
+        run_classifier_benchmark(tmp_path / "run" / "checkpoint", tmp_path / "other")
