@@ -77,7 +77,8 @@ def _web_port(url: str) -> int:
     return int(re.match(r"https?://[^/]*:(\d+)/", url).group(1))
 
 
-needs_proc = pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="reads listening sockets from Linux /proc")
+needs_proc = pytest.mark.skipif(not Path("/proc/net/tcp").exists() and not IN_CI,  # in CI: run, and fail
+                                reason="reads listening sockets from Linux /proc")
 
 
 @needs_proc
