@@ -119,7 +119,10 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
                           dynamics=contact_dynamics(sample, size, shape))
         object_id = f"{config.seed}-{job.index}-{obj_index}"
         info = ObjectInfo(material=sample, size_m=size, shape=shape, surface_seed=object_seed)
-        with Scene(SceneConfig(n_objects=0, seed=object_seed), catalogue=catalogue, objects=[spec]) as scene:
+        # One object, touched by every stroke: sleeping would save nothing (and the data stay those of the
+        # commits before objects could sleep).
+        scene_config = SceneConfig(n_objects=0, seed=object_seed, object_sleep_speed_mps=None)
+        with Scene(scene_config, catalogue=catalogue, objects=[spec]) as scene:
             obj = scene.objects[0]
             motion = ArmMotion(scene.robot)
             scene.robot.command_gripper(GripperPosture.stroke())

@@ -55,6 +55,10 @@ class SceneConfig:
         min_gap_m: clearance between the footprints of two objects.
         max_reach_m: largest horizontal distance of an object's centre from the robot base (the pad, pointing
             down, reaches about 0.40 m at 0.12 m above the table; the margin leaves room for the stroke).
+        object_sleep_speed_mps: an object whose linear (m/s) and angular (rad/s) speeds stay below this for
+            Bullet's deactivation time (2 s) falls asleep: the solver skips its contacts with the table until
+            something touches it, which wakes it (a force alone does not). A scratch timing on a loaded
+            machine: a fine step cost 0.35 ms with six resting objects, 0.21 ms with none. ``None``: never.
     """
 
     n_objects: int = 6
@@ -72,6 +76,7 @@ class SceneConfig:
     combustible_zone_xy_m: tuple[float, float] = (-0.30, -0.32)
     table_friction: float = 1.5
     settle_s: float = 0.3
+    object_sleep_speed_mps: float | None = 0.005
     sim: SimConfig = field(default_factory=SimConfig)
 
     def __post_init__(self) -> None:
@@ -212,6 +217,8 @@ class Scene:
         self.sim.set_dynamics(body, lateralFriction=d.lateral_friction, spinningFriction=d.spinning_friction,
                               rollingFriction=d.rolling_friction, restitution=d.restitution,
                               contactStiffness=d.contact_stiffness_n_per_m, contactDamping=d.contact_damping_n_s_per_m)
+        if self.config.object_sleep_speed_mps is not None:
+            self.sim.enable_sleeping(body, self.config.object_sleep_speed_mps)
         return SceneObject(body=body, spec=spec)
 
     # -- queries ----------------------------------------------------------------------------------------------

@@ -21,13 +21,15 @@ from robotdemo.errors import AssetError, SimulationError
 
 @dataclass(frozen=True)
 class StepMode:
-    """A physics step length (s, a multiple of the fine step) and the solver iterations per step."""
+    """A physics step length (s, a multiple of the fine step), the solver iterations per step, and whether
+    friction uses Bullet's cone model (``False``: the cheaper two-direction pyramid)."""
 
     time_step_s: float
     solver_iterations: int
+    cone_friction: bool = True
 
 
-STEP_MODES = ("fine", "free")
+STEP_MODES = ("fine", "free", "carry")
 
 
 @dataclass(frozen=True)
@@ -42,9 +44,14 @@ class SimConfig:
         solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
             default 1e-7; at 1e-5 and above the force loop on a hard block no longer settles within +-10 %).
         free_step: the ``"free"`` step mode, for the arm moving with nothing in hand (no contact to resolve).
+        carry_step: the ``"carry"`` step mode, for transporting and lowering a held object: 2 ms steps
+            with pyramid friction. Nothing is measured then, and the fingers' grip only needs a friction limit
+            of the right size, not the exact cone (with the cone, a 1.1 kg brass cylinder carried at 2 ms or
+            4 ms steps slipped out of the fingers).
+            A held object's contacts cost a 1 ms cone step about 1.8x a stroke step (scratch profile of one
+            6-object run: lifting, transport and placing took half the wall time for 24 % of the simulated).
         The modes are switched with :meth:`Simulator.use_step_mode`; ``"fine"`` is ``time_step_s`` with
-        ``solver_iterations``, what pressing, stroking and holding need (a 1.1 kg brass cylinder carried at
-        2 ms or 4 ms steps slipped out of the fingers; at 1 ms it held).
+        ``solver_iterations`` and the friction cone, what pressing, stroking and grasping need.
         gravity_mps2: gravity along world -z.
         gui: open PyBullet's own GUI window instead of running headless (DIRECT).
     """
@@ -53,6 +60,7 @@ class SimConfig:
     solver_iterations: int = 100
     solver_residual_threshold: float = 1e-7
     free_step: StepMode = StepMode(time_step_s=4.0 / 1000.0, solver_iterations=100)
+    carry_step: StepMode = StepMode(time_step_s=2.0 / 1000.0, solver_iterations=100, cone_friction=False)
     gravity_mps2: float = 9.81
     contact_erp: float = 0.2
     friction_erp: float = 0.2
@@ -152,12 +160,14 @@ class Simulator:
             numSubSteps=0, deterministicOverlappingPairs=1, solverResidualThreshold=config.solver_residual_threshold, contactERP=config.contact_erp,
             frictionERP=config.friction_erp, contactSlop=config.contact_slop_m, enableConeFriction=1,
             physicsClientId=self.client)
-        if config.free_step.time_step_s < config.time_step_s or config.free_step.solver_iterations < 1:
-            raise ValueError("SimConfig.free_step must not be shorter than time_step_s, and must iterate")
+        for name, mode in (("free_step", config.free_step), ("carry_step", config.carry_step)):
+            if mode.time_step_s < config.time_step_s or mode.solver_iterations < 1:
+                raise ValueError(f"SimConfig.{name} must not be shorter than time_step_s, and must iterate")
         self.time_s = 0.0
         self.steps = 0
         self.step_mode = "fine"
-        self._modes = {"fine": StepMode(config.time_step_s, config.solver_iterations), "free": config.free_step}
+        self._modes = {"fine": StepMode(config.time_step_s, config.solver_iterations), "free": config.free_step,
+                       "carry": config.carry_step}
         self._mode_start_s = 0.0
         self._mode_steps = 0
 
@@ -207,6 +217,14 @@ class Simulator:
         """Forward to ``changeDynamics`` (keyword names as PyBullet's: lateralFriction, contactStiffness, ...)."""
         p.changeDynamics(body, link, physicsClientId=self.client, **kwargs)
 
+    def enable_sleeping(self, body: int, threshold: float) -> None:
+        """Let ``body`` fall asleep once its linear (m/s) and angular (rad/s) speeds have stayed below
+        ``threshold`` for Bullet's deactivation time; contact with an awake body wakes it."""
+        if not threshold > 0.0:
+            raise ValueError(f"sleep threshold must be > 0, got {threshold}")
+        p.changeDynamics(body, -1, sleepThreshold=threshold, activationState=p.ACTIVATION_STATE_ENABLE_SLEEPING,
+                         physicsClientId=self.client)
+
     # -- stepping ---------------------------------------------------------------------------------------------
     @property
     def time_step_s(self) -> float:
@@ -214,8 +232,9 @@ class Simulator:
         return self._modes[self.step_mode].time_step_s
 
     def use_step_mode(self, mode: str) -> None:
-        """Switch the physics step: ``"fine"`` (``time_step_s``, ``solver_iterations``: contact that is measured
-        or must be resolved finely) or ``"free"`` (``free_step``)."""
+        """Switch the physics step: ``"fine"`` (``time_step_s``, ``solver_iterations``, friction cone: contact
+        that is measured or must be resolved finely), ``"free"`` (``free_step``) or ``"carry"``
+        (``carry_step``)."""
         if mode not in self._modes:
             raise ValueError(f"unknown step mode {mode!r}; expected one of {STEP_MODES}")
         if mode == self.step_mode:
@@ -224,6 +243,7 @@ class Simulator:
         self.step_mode = mode
         p.setPhysicsEngineParameter(fixedTimeStep=self._modes[mode].time_step_s,
                                     numSolverIterations=self._modes[mode].solver_iterations,
+                                    enableConeFriction=int(self._modes[mode].cone_friction),
                                     physicsClientId=self.client)
 
     def step(self, n: int = 1) -> None:

@@ -81,7 +81,7 @@ DEFAULT_TIME_BUDGET_S: Mapping[State, float] = MappingProxyType({
 
 DEFAULT_STEP_MODES: Mapping[State, str] = MappingProxyType({
     State.SELECT_OBJECT: "free", State.APPROACH: "free", State.CLASSIFY: "free", State.RETREAT: "free",
-    State.DONE: "free",
+    State.DONE: "free", State.TRANSPORT: "carry", State.PLACE: "carry",
 })
 """Physics step mode per state (the others are fine): see ``SortingConfig.step_modes``."""
 
@@ -124,7 +124,11 @@ class SortingConfig:
             a cork one.
         grasp_retry_gain: each retry after a slip or drop squeezes this much harder (0.5: x1.5, then x2).
         grasp_max_effort_nm: the cap never exceeds this, N m (the thumb gets twice; the URDF allows 10 N m).
-        pregrasp_clearance_m: fingertips this far above the object's top before descending.
+        pregrasp_clearance_m: fingertips this far above the object's top before descending (above the
+            tallest top within ``pregrasp_neighbour_radius_m``: the unfolding fingers swept a 59 mm cylinder
+            standing 13 cm from the 24 mm slab they were opening over off its place).
+        pregrasp_neighbour_radius_m: objects whose footprint comes this close to the grasp centre count as
+            neighbours the opening hand must clear.
         close_time_s: time the closing fingers get before the contacts are checked.
         carry_clearance_m: the carried object's bottom this far above the table during transport.
         travel_height_m: the pad passes this high above the table on its way to a new object.
@@ -142,9 +146,12 @@ class SortingConfig:
             :class:`ArmMotion`).
         time_budget_s: per-state time budget (see :data:`DEFAULT_TIME_BUDGET_S`).
         step_modes: the simulator's step mode per state (:meth:`robotdemo.sim.Simulator.use_step_mode`;
-            states not listed are ``"fine"``): ``"free"`` (4 ms) while the arm moves with nothing in hand.
-            Pressing and stroking (the measurement), grasping, carrying and releasing stay fine: carried at 4 ms
-            (or 2 ms) steps, a 1.1 kg brass cylinder slipped out of the fingers that held it at 1 ms.
+            states not listed are ``"fine"``): ``"free"`` (4 ms) while the arm moves with nothing in hand,
+            ``"carry"`` (2 ms, pyramid friction) while it transports and lowers a held object. Pressing and
+            stroking (the measurement), grasping, lifting and releasing stay fine: a weak grasp shows itself in
+            the lift, and a cylinder slipping out of it at the carry step rolled off the table in the fault test
+            where at the fine step it was picked up again. (Carried at 2 ms with the friction cone, or at 4 ms, a
+            1.1 kg brass cylinder slipped out of the fingers.)
     """
 
     environment: str = "fire"
@@ -173,6 +180,7 @@ class SortingConfig:
     grasp_retry_gain: float = 0.5
     grasp_max_effort_nm: float = 5.0
     pregrasp_clearance_m: float = 0.05
+    pregrasp_neighbour_radius_m: float = 0.15
     close_time_s: float = 0.5
     carry_clearance_m: float = 0.08
     travel_height_m: float = 0.15
@@ -362,6 +370,11 @@ class RestingGeometry:
     def bottom_z_m(self) -> float:
         return float(self.center_m[2] - 0.5 * self.height_m)
 
+    @property
+    def footprint_radius_m(self) -> float:
+        """Radius of the horizontal circle around the centre that holds its footprint, m."""
+        return 0.5 * math.hypot(self.long_m, self.short_m)
+
 
 def resting_geometry(scene: Scene, obj: SceneObject) -> RestingGeometry:
     """Which of the object's axes is vertical now, and its extents along the others (boxes, slabs, cylinders)."""
@@ -388,6 +401,20 @@ def resting_geometry(scene: Scene, obj: SceneObject) -> RestingGeometry:
         short_axis, short_m = np.array([-axis[1], axis[0], 0.0]), size[0]
     return RestingGeometry(center_m=pos, height_m=float(size[vertical]), long_axis=long_axis, short_axis=short_axis,
                            long_m=float(long_m), short_m=float(short_m), round_top=round_top, curved_top=curved_top)
+
+
+def clearance_height(scene: Scene, obj: SceneObject, radius_m: float) -> float:
+    """The highest top (world z, m) among ``obj`` and the objects whose footprint comes within ``radius_m`` of
+    its centre, as they rest now: what a hand opening over ``obj`` must stay above."""
+    own = resting_geometry(scene, obj)
+    tops = [own.top_z_m]
+    for other in scene.objects:
+        if other is obj:
+            continue
+        g = resting_geometry(scene, other)
+        if np.linalg.norm(g.center_m[:2] - own.center_m[:2]) - g.footprint_radius_m < radius_m:
+            tops.append(g.top_z_m)
+    return max(tops)
 
 
 def plan_stroke(geometry: RestingGeometry, config: SortingConfig, rng: np.random.Generator) -> StrokeConfig:
@@ -451,6 +478,9 @@ class GraspPlan:
     tip_height_m: float
     q_above: np.ndarray
     q_at: np.ndarray
+    clear_z_m: float
+    """Height the fingertips keep above the table before descending: the tallest top among the object and
+    its neighbours (m, world z)."""
 
 
 @dataclass
@@ -699,7 +729,8 @@ class SortingMachine:
         closed = GripperPosture.pinch_width(width - cfg.grasp_squeeze_m)
         tip_height = geometry.bottom_z_m + max(cfg.grasp_min_tip_height_m,
                                                min(cfg.grasp_tip_height_m, 0.45 * geometry.height_m))
-        above_tip = geometry.top_z_m + cfg.pregrasp_clearance_m
+        clear_z = clearance_height(self.scene, self.current_object, cfg.pregrasp_neighbour_radius_m)
+        above_tip = clear_z + cfg.pregrasp_clearance_m
         base_yaw = math.atan2(geometry.short_axis[1], geometry.short_axis[0])
         yaws = [base_yaw + k * math.pi / 2 for k in range(4)] if geometry.round_top else [base_yaw, base_yaw + math.pi]
         q_now = self.robot.arm_q()
@@ -721,7 +752,7 @@ class SortingMachine:
             cost = float(np.max(np.abs(above.q - q_now)))
             if cost < best_cost:
                 best_cost = cost
-                best = GraspPlan(geometry, rotation, opened, closed, tip_height, above.q, at.q)
+                best = GraspPlan(geometry, rotation, opened, closed, tip_height, above.q, at.q, clear_z)
         if best is None:
             return (f"unreachable: IK failed for the grasp at {np.round(geometry.center_m, 3).tolist()} m "
                     f"(residual {residual * 1000:.1f} mm)")
@@ -852,7 +883,7 @@ class SortingMachine:
                 return
             waypoints = []
             hand = self._hand_position()
-            if hand[2] < grasp.geometry.top_z_m + 0.12:  # low (after a stroke or a failed grasp): rise first
+            if hand[2] < grasp.clear_z_m + 0.12:  # low (after a stroke or a failed grasp): rise first
                 up = self.motion.solve_hand(hand + np.array([0.0, 0.0, 0.06]),
                                             self.sim.link_state(self.robot.body, self.hand_link).rotation)
                 if up.success:
@@ -862,7 +893,7 @@ class SortingMachine:
             return
         if act.sub == "move":
             finished = act.move.step()
-            if not act.flag and (finished or self._hand_position()[2] > self._grasp.geometry.top_z_m + 0.15):
+            if not act.flag and (finished or self._hand_position()[2] > self._grasp.clear_z_m + 0.15):
                 self.robot.command_gripper(self._grasp.opened)  # open once the unfolding fingers clear the object
                 act.flag = True
             if finished:

@@ -71,3 +71,36 @@ def test_pinch_width_matches_finger_geometry():
                 assert abs(float(closing @ (faces[finger] - faces[0]))) == pytest.approx(width, abs=0.0015)
         with pytest.raises(ValueError, match="outside what the gripper can open"):
             GripperPosture.pinch_width(0.2)
+
+
+def test_heavy_block_is_carried_in_the_carry_step_mode():
+    """A 50 mm brass-dense block (1.06 kg), squeezed as the sorting robot squeezes it, is lifted and carried
+    15 cm sideways at the ``carry`` step (2 ms, pyramid friction) without slipping in the fingers."""
+    size_m = 0.05
+    sim, robot, block = _world_with_block(size_m, density_kg_m3=8500.0)
+    with sim:
+        motion = ArmMotion(robot)
+        start, _ = sim.base_pose(block)
+        opened = GripperPosture.pinch_width(size_m + 0.024)
+        robot.command_gripper(opened)
+        above = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.08, opened.q[0], DOWN))
+        at = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.012, opened.q[0], DOWN), q=above.q)
+        run_to_completion(motion.plan_path([above.q, at.q]))
+        effort_nm = 4.0 * 8500.0 * size_m**3  # SortingConfig.grasp_effort_per_kg_nm x mass
+        robot.command_gripper(GripperPosture.pinch_width(size_m - 0.006), effort_nm=effort_nm)
+        hold(robot, 0.5)
+        hand = robot.link_index["finger0_tip"]
+        offset0 = sim.base_pose(block)[0] - sim.link_state(robot.body, hand).position_m
+        sim.use_step_mode("carry")
+        assert sim.time_step_s == pytest.approx(0.002)
+        lifted = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.10, opened.q[0], DOWN), q=at.q)
+        aside = motion.solve_hand(hand_position_for_grasp(start[:2] + np.array([0.0, -0.15]), TABLE_Z + 0.10,
+                                                          opened.q[0], DOWN), q=lifted.q)
+        assert lifted.success and aside.success
+        run_to_completion(motion.plan_path([lifted.q, aside.q]))
+        hold(robot, 0.3)
+        sim.use_step_mode("fine")
+        end, _ = sim.base_pose(block)
+        slip_m = np.linalg.norm(end - sim.link_state(robot.body, hand).position_m - offset0)
+        assert end[2] - start[2] >= 0.08 and np.linalg.norm(end[:2] - start[:2]) >= 0.13
+        assert slip_m < 0.005, f"the block slipped {1000 * slip_m:.1f} mm in the fingers"

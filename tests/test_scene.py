@@ -87,3 +87,31 @@ def test_free_steps_keep_time_and_leave_resting_objects_at_rest():
             sim.advance(0.0005)
         with pytest.raises(ValueError, match="unknown step mode"):
             sim.use_step_mode("turbo")
+
+
+@pytest.mark.parametrize("sleep_speed_mps", [0.005, None])
+def test_resting_objects_sleep_and_wake_when_struck(sleep_speed_mps):
+    """Objects left at rest for longer than Bullet's deactivation time fall asleep (if enabled) and stay put;
+    a box thrown at one wakes it and knocks it aside just as it knocks an object that never slept."""
+    import pybullet as p
+
+    with Scene(SceneConfig(n_objects=1, seed=3, shapes=("box",), object_sleep_speed_mps=sleep_speed_mps)) as scene:
+        obj = scene.objects[0]
+        sim = scene.sim
+        rest, _ = scene.object_pose(obj)
+        sim.advance(3.0)
+        assert np.linalg.norm(scene.object_pose(obj)[0] - rest) < 2e-4
+        if sleep_speed_mps is not None:  # asleep: a pushing force alone does not wake it (Bullet); contact does
+            for _ in range(20):
+                p.applyExternalForce(obj.body, -1, [0.0, 0.0, 100.0], rest.tolist(), p.WORLD_FRAME,
+                                     physicsClientId=sim.client)
+                sim.step()
+            assert np.linalg.norm(scene.object_pose(obj)[0] - rest) < 2e-4
+        z = scene.table_top_z_m + obj.spec.size_m[2] / 2
+        start = rest + np.array([0.0, 0.12, 0.0])
+        start[2] = z
+        projectile = sim.create_primitive("box", (0.03, 0.03, 0.03), 0.5, start, (0, 0, 0, 1), (1, 0, 0, 1))
+        p.resetBaseVelocity(projectile, [0.0, -1.5, 0.0], physicsClientId=sim.client)
+        sim.advance(0.5)
+        moved_m = np.linalg.norm(scene.object_pose(obj)[0][:2] - rest[:2])
+        assert moved_m > 0.005, f"the struck object moved {1000 * moved_m:.1f} mm"

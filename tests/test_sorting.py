@@ -190,3 +190,28 @@ def test_zone_follows_the_summed_probability_of_each_side():
     sure = Classification("paper", 0.9, {"paper": 0.9, "metal": 0.1}, {}, ("sound",))
     side = decide_zone(sure, combustible)
     assert side.combustible and side.category == "paper" and side.confidence == pytest.approx(0.9)
+
+
+def test_pregrasp_height_clears_tall_neighbours():
+    """The hand opens over an object above the tallest top near it: a 60 mm cylinder 12 cm from a 24 mm slab
+    raises the slab's clearance height to its own top; a cylinder 30 cm away does not."""
+    from perception.materials import contact_dynamics, sample_material
+    from robotdemo.scene import ObjectSpec
+    from robotdemo.sorting import clearance_height
+
+    catalogue = default_catalogue()
+
+    def spec(name, instance, shape, size, xy):
+        sample = sample_material(catalogue.instance(instance), np.random.default_rng(0))
+        body = "cylinder" if shape == "cylinder" else "box"
+        return ObjectSpec(name=name, shape=shape, size_m=size, xy_m=xy, yaw_rad=0.0, material=sample,
+                          dynamics=contact_dynamics(sample, size, body))
+
+    slab = spec("slab", "silicone_rubber", "slab", (0.078, 0.049, 0.024), (-0.25, 0.0))
+    near = spec("near", "acrylic", "cylinder", (0.04, 0.04, 0.06), (-0.13, 0.0))
+    far = spec("far", "acrylic", "cylinder", (0.04, 0.04, 0.06), (-0.25, 0.30))
+    for neighbour, tall_near in ((near, True), (far, False)):
+        with Scene(SceneConfig(n_objects=0, seed=0), catalogue=catalogue, objects=[slab, neighbour]) as scene:
+            top = scene.table_top_z_m
+            clear = clearance_height(scene, scene.objects[0], SortingConfig().pregrasp_neighbour_radius_m)
+            assert clear == pytest.approx(top + (0.06 if tall_near else 0.024), abs=2e-3)
