@@ -215,3 +215,29 @@ def test_pregrasp_height_clears_tall_neighbours():
             top = scene.table_top_z_m
             clear = clearance_height(scene, scene.objects[0], SortingConfig().pregrasp_neighbour_radius_m)
             assert clear == pytest.approx(top + (0.06 if tall_near else 0.024), abs=2e-3)
+
+
+def test_object_pushed_out_of_its_zone_after_placing_fails_with_the_reason():
+    """The final tally looks at where each object rests at the end: one that was placed in its zone and later
+    left it (here a box thrown at it once the robot is done with it) fails, and the report says why."""
+    classifier = OracleClassifier()
+    with Scene(SceneConfig(n_objects=1, seed=4)) as scene:
+        machine = SortingMachine(scene, classifier, SortingConfig(), seed=0)
+        obj = scene.objects[0]
+        while machine.decisions[obj.name].end_time_s is None:
+            machine.step()
+        d = machine.decisions[obj.name]
+        assert d.success and d.zone_reached == scene.zone_for(obj.combustible).name
+        zone = scene.zone_for(obj.combustible)
+        rest, _ = scene.object_pose(obj)
+        start = rest + np.array([0.0, -0.06 * np.sign(zone.center_xy_m[1]), 0.0])  # from the table's centre side
+        start[2] = scene.table_top_z_m + 0.015
+        projectile = scene.sim.create_primitive("box", (0.03, 0.03, 0.03), 2.0, start, (0, 0, 0, 1), (1, 0, 0, 1))
+        p.resetBaseVelocity(projectile, [0.0, 3.0 * np.sign(zone.center_xy_m[1]), 0.0],
+                            physicsClientId=scene.sim.client)
+        scene.sim.advance(1.0)  # the box strikes it before the machine's next tick
+        machine.step()
+        assert machine.done and scene.zone_of(obj) is None
+        d = machine.decisions[obj.name]
+        assert not d.success and d.zone_reached is None
+        assert d.failure_reason == f"pushed out of the {zone.name} zone after it was placed"
