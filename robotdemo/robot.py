@@ -5,6 +5,8 @@ All commands go through joint motors with the URDF's efforts (no teleporting aft
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -29,6 +31,22 @@ DISTAL_AND_TIP_M = 0.07
 PALM_HEIGHT_M + PROXIMAL_LENGTH_M cos(a) + DISTAL_AND_TIP_M from gripper_base along its z axis."""
 MAX_GRASP_WIDTH_M = 0.088
 """Widest pinch: the proximal joints open to -0.7 rad (their limit), 23.9 mm + 100 mm x sin(0.7) = 88 mm."""
+FINGER_OFFSET_M = 0.0266 * math.sin(math.radians(120.0))
+"""The two fingers' centre lines stand this far (23 mm) either side of the thumb's: their bases sit on a
+26.6 mm circle at 120 deg from the thumb's (urdf/generate.py)."""
+FINGER_WIDTH_M = 0.02
+
+
+def round_pinch_width(diameter_m: float) -> float:
+    """Pinch width at first contact on an upright cylinder of ``diameter_m``, m.
+
+    The thumb, on the pinch axis, touches the cylinder's side at the radius r; the two fingers, whose inner
+    edges stand e = FINGER_OFFSET_M - FINGER_WIDTH_M / 2 (13 mm) off the axis, touch it at sqrt(r^2 - e^2). The
+    pinch meets the cylinder at r + sqrt(r^2 - e^2), not 2 r: 46.4 mm for a 50 mm cylinder, 35.3 mm for 40 mm.
+    """
+    r = 0.5 * diameter_m
+    e = FINGER_OFFSET_M - 0.5 * FINGER_WIDTH_M
+    return r + math.sqrt(max(r * r - e * e, 0.0))
 
 
 @dataclass(frozen=True)

@@ -44,12 +44,12 @@ class SimConfig:
         solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
             default 1e-7; at 1e-5 and above the force loop on a hard block no longer settles within +-10 %).
         free_step: the ``"free"`` step mode, for the arm moving with nothing in hand (no contact to resolve).
-        carry_step: the ``"carry"`` step mode, for transporting and lowering a held object: 2 ms steps
-            with pyramid friction. Nothing is measured then, and the fingers' grip only needs a friction limit
-            of the right size, not the exact cone (with the cone, a 1.1 kg brass cylinder carried at 2 ms or
-            4 ms steps slipped out of the fingers).
-            A held object's contacts cost a 1 ms cone step about 1.8x a stroke step (scratch profile of one
-            6-object run: lifting, transport and placing took half the wall time for 24 % of the simulated).
+        carry_step: the ``"carry"`` step mode, an option for transporting and lowering a held object: 2 ms
+            steps with pyramid friction (with the cone, a 1.1 kg brass cylinder carried at 2 ms or 4 ms steps
+            slipped out of the fingers). A held object's contacts cost a 1 ms cone step about 1.8x a stroke
+            step (scratch profile of one 6-object run: lifting, transport and placing took half the wall time
+            for 24 % of the simulated), but light objects slip more often at this step, so the sorting robot
+            does not use it by default (see ``SortingConfig.step_modes``).
         The modes are switched with :meth:`Simulator.use_step_mode`; ``"fine"`` is ``time_step_s`` with
         ``solver_iterations`` and the friction cone, what pressing, stroking and grasping need.
         gravity_mps2: gravity along world -z.

@@ -104,3 +104,46 @@ def test_heavy_block_is_carried_in_the_carry_step_mode():
         slip_m = np.linalg.norm(end - sim.link_state(robot.body, hand).position_m - offset0)
         assert end[2] - start[2] >= 0.08 and np.linalg.norm(end[:2] - start[:2]) >= 0.13
         assert slip_m < 0.005, f"the block slipped {1000 * slip_m:.1f} mm in the fingers"
+
+
+@pytest.mark.parametrize("diameter_m", [0.040, 0.050])
+def test_upright_cylinder_is_pinched_where_the_fingers_meet_it(diameter_m):
+    """The two fingers stand 13 mm off the pinch axis at their inner edges, so they meet an upright cylinder
+    short of its diameter: closing to the diameter minus the squeeze barely loads them, closing to
+    ``round_pinch_width`` minus the squeeze puts the thumb and both fingers on it and lifts it."""
+    from robotdemo.robot import round_pinch_width
+
+    assert round_pinch_width(diameter_m) < diameter_m - 0.003
+    sim = Simulator()
+    sim.load_urdf(urdf_path(FLOOR_URDF), fixed_base=True)
+    table = sim.load_urdf(urdf_path(TABLE_URDF), fixed_base=True)
+    sim.set_dynamics(table, lateralFriction=1.5)  # the sorting scene's anti-slip mat: the thumb cannot shove it
+    robot = Robot(sim, (-0.45, 0.0, TABLE_Z), np.pi)
+    height = 0.06
+    cylinder = sim.create_primitive("cylinder", (diameter_m, diameter_m, height), 0.12,
+                                    (-0.2, 0.05, TABLE_Z + height / 2), (0, 0, 0, 1), (0.6, 0.6, 0.6, 1))
+    sim.set_dynamics(cylinder, lateralFriction=0.8, contactStiffness=3e4, contactDamping=200)
+    sim.step(100)
+    with sim:
+        motion = ArmMotion(robot)
+        start, _ = sim.base_pose(cylinder)
+        opened = GripperPosture.pinch_width(diameter_m + 0.024)
+        robot.command_gripper(opened)
+        above = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.11, opened.q[0], DOWN))
+        at = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.012, opened.q[0], DOWN), q=above.q)
+        run_to_completion(motion.plan_path([above.q, at.q]))
+        finger_links = {robot.link_index[f"finger{f}_{part}"] for f in (1, 2) for part in ("distal", "tip")}
+
+        def finger_force_n() -> float:
+            return sum(c.normal_force_n for c in robot.finger_contacts(cylinder) if c.link_a in finger_links)
+
+        robot.command_gripper(GripperPosture.pinch_width(diameter_m - 0.006))
+        hold(robot, 0.5)
+        diameter_rule_n = finger_force_n()
+        robot.command_gripper(GripperPosture.pinch_width(round_pinch_width(diameter_m) - 0.006))
+        hold(robot, 0.5)
+        assert finger_force_n() > max(5.0 * diameter_rule_n, 0.5)
+        lifted = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.11, opened.q[0], DOWN), q=at.q)
+        run_to_completion(motion.plan_path([lifted.q]))
+        hold(robot, 0.3)
+        assert sim.base_pose(cylinder)[0][2] - start[2] >= 0.08
