@@ -125,8 +125,8 @@ class SortingConfig:
         grasp_retry_gain: each retry after a slip or drop squeezes this much harder (0.5: x1.5, then x2).
         grasp_max_effort_nm: the cap never exceeds this, N m (the thumb gets twice; the URDF allows 10 N m).
         pregrasp_clearance_m: fingertips this far above the object's top before descending (above the
-            tallest top within ``pregrasp_neighbour_radius_m``: the unfolding fingers swept a 59 mm cylinder
-            standing 13 cm from the 24 mm slab they were opening over off its place).
+            tallest top within ``pregrasp_neighbour_radius_m``: the hand, moving to open over a 24 mm slab,
+            swept a 59 mm cylinder standing 13 cm away off its place, seed 6).
         pregrasp_neighbour_radius_m: objects whose footprint comes this close to the grasp centre count as
             neighbours the opening hand must clear.
         close_time_s: time the closing fingers get before the contacts are checked.
