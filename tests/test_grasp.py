@@ -73,19 +73,27 @@ def test_pinch_width_matches_finger_geometry():
             GripperPosture.pinch_width(0.2)
 
 
+def _open_and_lower_around(sim, robot, body, width_m, above_z_m):
+    """Open the fingers for an object ``width_m`` across and lower the hand from ``above_z_m`` until the
+    fingertips are 12 mm above the table, around ``body``. Returns (motion, the object's start position,
+    the opened posture, the joint solution at the bottom)."""
+    motion = ArmMotion(robot)
+    start, _ = sim.base_pose(body)
+    opened = GripperPosture.pinch_width(width_m + 0.024)
+    robot.command_gripper(opened)
+    above = motion.solve_hand(hand_position_for_grasp(start[:2], above_z_m, opened.q[0], DOWN))
+    at = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.012, opened.q[0], DOWN), q=above.q)
+    run_to_completion(motion.plan_path([above.q, at.q]))
+    return motion, start, opened, at
+
+
 def test_heavy_block_is_carried_in_the_carry_step_mode():
     """A 50 mm brass-dense block (1.06 kg), squeezed as the sorting robot squeezes it, is lifted and carried
     15 cm sideways at the ``carry`` step (2 ms, pyramid friction) without slipping in the fingers."""
     size_m = 0.05
     sim, robot, block = _world_with_block(size_m, density_kg_m3=8500.0)
     with sim:
-        motion = ArmMotion(robot)
-        start, _ = sim.base_pose(block)
-        opened = GripperPosture.pinch_width(size_m + 0.024)
-        robot.command_gripper(opened)
-        above = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.08, opened.q[0], DOWN))
-        at = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.012, opened.q[0], DOWN), q=above.q)
-        run_to_completion(motion.plan_path([above.q, at.q]))
+        motion, start, opened, at = _open_and_lower_around(sim, robot, block, size_m, TABLE_Z + 0.08)
         effort_nm = 4.0 * 8500.0 * size_m**3  # SortingConfig.grasp_effort_per_kg_nm x mass
         robot.command_gripper(GripperPosture.pinch_width(size_m - 0.006), effort_nm=effort_nm)
         hold(robot, 0.5)
@@ -125,13 +133,7 @@ def test_upright_cylinder_is_pinched_where_the_fingers_meet_it(diameter_m):
     sim.set_dynamics(cylinder, lateralFriction=0.8, contactStiffness=3e4, contactDamping=200)
     sim.step(100)
     with sim:
-        motion = ArmMotion(robot)
-        start, _ = sim.base_pose(cylinder)
-        opened = GripperPosture.pinch_width(diameter_m + 0.024)
-        robot.command_gripper(opened)
-        above = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.11, opened.q[0], DOWN))
-        at = motion.solve_hand(hand_position_for_grasp(start[:2], TABLE_Z + 0.012, opened.q[0], DOWN), q=above.q)
-        run_to_completion(motion.plan_path([above.q, at.q]))
+        motion, start, opened, at = _open_and_lower_around(sim, robot, cylinder, diameter_m, TABLE_Z + 0.11)
         finger_links = {robot.link_index[f"finger{f}_{part}"] for f in (1, 2) for part in ("distal", "tip")}
 
         def finger_force_n() -> float:
