@@ -148,6 +148,14 @@ def _cached_filterbank(n_win: int, rate_hz: float, n_bands: int, fmin_hz: float,
     return weights
 
 
+@functools.lru_cache(maxsize=32)
+def _cached_hann(n_win: int) -> np.ndarray:
+    """The periodic Hann window ``scipy.signal.stft`` would build for ``window="hann"`` (built once per length)."""
+    window = scipy.signal.get_window("hann", n_win)
+    window.flags.writeable = False
+    return window
+
+
 def _frame_params(window_s: float, hop_s: float, rate_hz: float) -> tuple[int, int]:
     n_win = max(2, int(round(window_s * rate_hz)))
     hop = max(1, int(round(hop_s * rate_hz)))
@@ -170,7 +178,7 @@ def spectral_features(stream: Stream, config: SpectralConfig) -> np.ndarray:
     x = x - x.mean(axis=1, keepdims=True)
     if x.shape[1] < n_win:
         x = np.pad(x, ((0, 0), (0, n_win - x.shape[1])))
-    freqs, _, zxx = scipy.signal.stft(x, fs=rate, window="hann", nperseg=n_win, noverlap=n_win - hop,
+    freqs, _, zxx = scipy.signal.stft(x, fs=rate, window=_cached_hann(n_win), nperseg=n_win, noverlap=n_win - hop,
                                       boundary=None, padded=False, axis=-1)  # zxx (C, F, N)
     power = (np.abs(zxx) ** 2).sum(axis=0)  # (F, N)
     weights = _cached_filterbank(n_win, rate, config.n_bands, config.fmin_hz, min(config.fmax_hz, rate / 2.0), config.mel)

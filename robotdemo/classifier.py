@@ -24,6 +24,7 @@ from perception.checkpoint import Checkpoint, CheckpointError, load_checkpoint
 from perception.features import collate, feature_dims, featurize
 from perception.materials import default_catalogue
 from perception.streams import MODALITIES, StrokeRecord
+from perception.touchformer_infer import for_inference
 from robotdemo.errors import RobotDemoError
 
 
@@ -135,7 +136,7 @@ class TouchFormerClassifier:
 
     def __init__(self, checkpoint: Checkpoint) -> None:
         self.checkpoint = checkpoint
-        self.model = checkpoint.model.eval()
+        self.model = for_inference(checkpoint.model)  # TouchFormer repacked: same outputs, ~5x faster
         self.dims = feature_dims(checkpoint.feature_config)
         catalogue = default_catalogue()
         names = checkpoint.class_names
