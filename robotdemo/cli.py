@@ -107,7 +107,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         result = run_trajectory_benchmark(n_plans=args.n or 1000, seed=args.seed)
     elif args.what == "inference":
         from perception.bench_inference import run_inference_benchmark
-        result = run_inference_benchmark(args.checkpoint or "touchformer", n=args.n or 200)
+        result = run_inference_benchmark(args.checkpoint or "touchformer", n=args.n or 200, duration_s=args.stroke_s)
     elif args.what == "demo":
         from robotdemo.demo import DEFAULT_CHECKPOINT, run_demo_bench
         result = run_demo_bench(seeds=args.seeds, n_objects=args.objects, environment="fire",
@@ -233,6 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="demo: classify with the true labels (the robot's handling alone; a diagnostic)")
     bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")
     bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--stroke-s", type=float, default=1.0,
+                       help="inference: length of the synthetic stroke, s (the data sets' median is about 4.4)")
     bench.add_argument("--json", action="store_true")
     bench.set_defaults(func=_cmd_bench)
     return parser
