@@ -52,7 +52,7 @@ from robotdemo.motion import DOWN, ArmMotion, JointMove, MotionConfig
 from robotdemo.robot import MAX_GRASP_WIDTH_M, GripperPosture, hand_position_for_grasp, round_pinch_width
 from robotdemo.scene import Scene, SceneObject, Zone, body_shape
 from robotdemo.sim import STEP_MODES
-from robotdemo.stroking import StrokeExecution, StrokeResult
+from robotdemo.stroking import StrokeExecution, StrokeResult, sliding_friction
 
 Classifier = Callable[[StrokeRecord], Classification]
 
@@ -110,8 +110,17 @@ class SortingConfig:
             target; that was the stroke IK's 10 um tolerance, since fixed with ``ArmMotion.force_ik``. The
             data set and the measured demo runs use +-20 %.)
         min_partial_slide_m: a stroke aborted during its slide after at least this much sliding is still
-            classified (its trace holds the contact so far); a failed stroke is retried at the lowest force and
-            speed.
+            classified (its trace holds the contact so far); a failed stroke is retried at ``gentle_force_n`` and
+            the lowest speed. If every stroke fails after its press reached the force, the one that slid
+            furthest is classified all the same (the press and touch-down were felt).
+        gentle_force_n: the force of a retry after a failed stroke, the data set's lowest (its strokes press with
+            0.5-5 N). A stuck pad pushing a tall object's top tips it about its leading bottom edge, which
+            raises the face into the pad: N then grows with the push, and the pad never slips once
+            (a - x) / h < mu (a: half the base along the slide, x: the pad ahead of the centre, h: the
+            height). The pad slips before the object starts to turn only while mu N < (N (a - x) + m g a) / h,
+            which a lower N favours. A 99 g polycarbonate cylinder, 42 mm across and 60 mm tall (mu 0.81),
+            wedged the pad (over 20 N) at the start of every slide at 1.5 N; seeds 6 and 8 of the demo
+            bench sorted such cylinders on a 0.5 N retry, though at other spots 0.5 N wedged it too.
         grasp_clearance_m: opened fingers stand this far from each side of the object (less for wide objects,
             down to ``grasp_min_clearance_m``, as the fingers open at most ``MAX_GRASP_WIDTH_M``).
         grasp_squeeze_m: the fingers are commanded this much narrower than the object (the squeeze).
@@ -122,6 +131,12 @@ class SortingConfig:
         grasp_effort_per_kg_nm: the cap grows with the object's estimated mass (its volume times the heaviest
             nominal density of the predicted category), N m per kg, so a brass block is squeezed harder than
             a cork one.
+        grasp_reference_friction: the mass-based cap is raised for surfaces more slippery than this, by
+            ``grasp_reference_friction / mu`` (at most ``grasp_friction_gain_max``), where mu is the kinetic
+            friction the pad measured while stroking (:func:`robotdemo.stroking.sliding_friction`): the
+            fingers' friction scales with the same surface. A 451 g PTFE block (mu 0.24) squeezed at the
+            mass-based cap alone slipped 15 mm in transport (seed 3).
+        grasp_friction_gain_max: largest factor the friction correction applies.
         grasp_retry_gain: each retry after a slip or drop squeezes this much harder (0.5: x1.5, then x2).
         grasp_max_effort_nm: the cap never exceeds this, N m (the thumb gets twice; the URDF allows 10 N m).
         pregrasp_clearance_m: fingertips this far above the object's top before descending (above the
@@ -165,6 +180,7 @@ class SortingConfig:
     max_grasp_attempts: int = 3
     trust_threshold: float = 0.05
     stroke_force_n: tuple[float, float] = (1.5, 3.0)
+    gentle_force_n: float = 0.5
     stroke_speed_mps: tuple[float, float] = (0.02, 0.03)
     stroke_length_m: tuple[float, float] = (0.02, 0.03)
     stroke_edge_margin_m: float = 0.006
@@ -182,6 +198,8 @@ class SortingConfig:
     grasp_min_tip_height_m: float = 0.008
     grasp_effort_nm: float | None = None
     grasp_effort_per_kg_nm: float = 4.0
+    grasp_reference_friction: float = 0.5
+    grasp_friction_gain_max: float = 3.0
     grasp_retry_gain: float = 0.5
     grasp_max_effort_nm: float = 5.0
     pregrasp_clearance_m: float = 0.05
@@ -296,6 +314,8 @@ class ObjectDecision:
             no gate weights).
         modalities_present: modalities recorded in any stroke.
         strokes_taken: strokes executed (successful or not).
+        measured_friction: kinetic friction against the pad felt while sliding (median over the classified
+            strokes), ``None`` until measured.
         grasp_attempts: grasps started.
         target_zone: zone chosen from the prediction, ``None`` until classified.
         zone_reached: zone the object rests in (``None``: none, or still held).
@@ -316,6 +336,7 @@ class ObjectDecision:
     trusted_sensors: tuple[str, ...] = ()
     modalities_present: tuple[str, ...] = ()
     strokes_taken: int = 0
+    measured_friction: float | None = None
     grasp_attempts: int = 0
     target_zone: str | None = None
     zone_reached: str | None = None
@@ -338,7 +359,9 @@ class ObjectDecision:
             "probabilities": {k: round(v, 4) for k, v in self.probabilities.items()},
             "gate_weights": {k: round(v, 4) for k, v in self.gate_weights.items()},
             "trusted_sensors": list(self.trusted_sensors), "modalities_present": list(self.modalities_present),
-            "strokes_taken": self.strokes_taken, "grasp_attempts": self.grasp_attempts,
+            "strokes_taken": self.strokes_taken,
+            "measured_friction": None if self.measured_friction is None else round(self.measured_friction, 4),
+            "grasp_attempts": self.grasp_attempts,
             "target_zone": self.target_zone, "zone_reached": self.zone_reached, "correct": self.correct,
             "success": self.success, "failure_reason": self.failure_reason or None,
             "start_time_s": self.start_time_s, "end_time_s": self.end_time_s,
@@ -552,6 +575,8 @@ class SortingMachine:
         self._activity = _Activity()
         self._stroke_plan: StrokeConfig | None = None
         self._stroke_results: list[StrokeResult] = []
+        self._pressed_results: list[StrokeResult] = []
+        """Failed strokes of the current object that pressed and began their slide (kept in case all fail)."""
         self._classifications: list[Classification] = []
         self._records: list[StrokeRecord] = []
         self._grasp: GraspPlan | None = None
@@ -687,7 +712,7 @@ class SortingMachine:
                                                 self.object_index[o.name]))
         self._pending.remove(obj)
         self.current_object = obj
-        self._stroke_results, self._classifications, self._grasp = [], [], None
+        self._stroke_results, self._pressed_results, self._classifications, self._grasp = [], [], [], None
         self._update(start_time_s=self.sim.time_s)
         self._emit(obj.name, f"selected {obj.name} ({obj.spec.shape})")
         geometry = resting_geometry(self.scene, obj)
@@ -705,14 +730,14 @@ class SortingMachine:
         self._enter(State.APPROACH, f"approaching {obj.name} to stroke it")
 
     def _plan_next_stroke(self, geometry: RestingGeometry, gentle: bool = False) -> str:
-        """Draw the next stroke (another spot each time; after a failed stroke at the lowest force and speed)
+        """Draw the next stroke (another spot each time; after a failed stroke gently: ``gentle_force_n``, lowest speed)
         and check it is reachable; returns a problem or ''."""
         obj = self.current_object
         k = self.decisions[obj.name].strokes_taken
         rng = np.random.default_rng([self.seed, self.object_index[obj.name], k, 1])
         plan = plan_stroke(geometry, self.config, rng)
         if gentle:
-            plan = replace(plan, target_force_n=self.config.stroke_force_n[0], speed_mps=self.config.stroke_speed_mps[0])
+            plan = replace(plan, target_force_n=self.config.gentle_force_n, speed_mps=self.config.stroke_speed_mps[0])
         hover = np.asarray(plan.start_point_m) + plan.normal() * plan.approach_height_m
         above = hover + plan.normal() * 0.03
         sol_above = self.motion.solve_pad(above, plan.rotation())
@@ -821,6 +846,8 @@ class SortingMachine:
             self._enter(State.CLASSIFY, f"stroke aborted after {slid * 1000:.0f} mm of slide ({result.failure_reason}); "
                                         "classifying what was felt")
             return
+        if result.slide_start_m is not None:
+            self._pressed_results.append(result)
         taken = self.decisions[self.current_object.name].strokes_taken
         if taken < self.config.max_strokes:
             problem = self._plan_next_stroke(resting_geometry(self.scene, self.current_object), gentle=True)
@@ -829,6 +856,13 @@ class SortingMachine:
                 return
         if self._classifications:
             self._decide(f"stroke failed ({result.failure_reason}); deciding from the earlier strokes")
+        elif self._pressed_results:
+            # every stroke failed, but the pad pressed and held the force before each slide went wrong: the
+            # press (touch-down, force, the start of the slide) is still touch; decide from the longest slide
+            felt = max(self._pressed_results, key=lambda r: float(np.linalg.norm(r.slide_end_m - r.slide_start_m)))
+            self._stroke_results.append(felt)
+            self._enter(State.CLASSIFY, f"stroke failed ({result.failure_reason}); every stroke failed after "
+                                        "pressing: classifying what the presses felt")
         else:
             self._fail(f"stroke failed: {result.failure_reason}")
 
@@ -873,6 +907,8 @@ class SortingMachine:
         side = decide_zone(decision, self.combustible)
         zone = self.scene.zone_for(side.combustible)
         confidence = float(decision.probabilities.get(side.category, decision.confidence))
+        felt = [mu for mu in (sliding_friction(r.trace) for r in self._stroke_results) if mu is not None]
+        self._update(measured_friction=float(np.median(felt)) if felt else None)
         self._update(predicted_category=side.category, confidence=confidence,
                      combustible_probability=side.combustible_probability, probabilities=dict(decision.probabilities),
                      gate_weights=dict(decision.gate_weights),
@@ -939,7 +975,11 @@ class SortingMachine:
         g = self._grasp.geometry
         category = self.decisions[obj.name].predicted_category
         mass_kg = g.long_m * g.short_m * g.height_m * self._category_density.get(category, 0.0)
-        effort = max(base, cfg.grasp_effort_per_kg_nm * mass_kg) * (1.0 + cfg.grasp_retry_gain * (attempt - 1))
+        mu = self.decisions[obj.name].measured_friction
+        slippery = 1.0 if mu is None else min(max(1.0, cfg.grasp_reference_friction / max(mu, 1e-3)),
+                                              cfg.grasp_friction_gain_max)
+        effort = (max(base, cfg.grasp_effort_per_kg_nm * mass_kg * slippery)
+                  * (1.0 + cfg.grasp_retry_gain * (attempt - 1)))
         return float(min(effort, max(cfg.grasp_max_effort_nm, base)))
 
     def _grasp_step(self) -> None:

@@ -278,3 +278,18 @@ def cruise_speed_mps(result: StrokeResult, period_s: float) -> float:
         return 0.0
     a, b = ticks[len(ticks) // 4], ticks[3 * len(ticks) // 4]
     return float(np.linalg.norm(result.actual_m[b] - result.actual_m[a]) / ((b - a) * period_s))
+
+
+def sliding_friction(trace: ContactTrace, min_speed_mps: float = 0.005, min_normal_n: float = 0.2) -> float | None:
+    """The friction coefficient the pad felt while sliding: median over physics steps of |total shear| /
+    total normal, over the steps where the pad slid (tangential speed at least ``min_speed_mps``) under at
+    least ``min_normal_n``; ``None`` without such steps. What a calibrated three-axis fingertip sensor reads
+    as kinetic friction against the pad."""
+    valid = trace.point_valid
+    normal = np.where(valid, trace.point_normal_force_n, 0.0).sum(axis=1)  # (T,)
+    shear = np.where(valid[..., None], trace.point_shear_force_n, 0.0).sum(axis=1)  # (T, 2)
+    speed = np.linalg.norm(trace.pad_velocity_mps[:, :2], axis=1)  # (T,)
+    sliding = (speed >= min_speed_mps) & (normal >= min_normal_n)
+    if not np.any(sliding):
+        return None
+    return float(np.median(np.linalg.norm(shear[sliding], axis=1) / normal[sliding]))

@@ -89,6 +89,9 @@ def test_episode_steps_through_every_state_to_done(episode):
         assert d.zone_reached == d.target_zone == true_zones[name]
         assert d.predicted_category == d.true_category and d.strokes_taken == 1 and d.grasp_attempts == 1
         assert d.start_time_s < d.end_time_s
+        # the pad felt the surface's kinetic friction while sliding (Coulomb in the simulator)
+        kinetic = next(o.spec for o in machine.scene.objects if o.name == name).material.friction_kinetic
+        assert d.measured_friction == pytest.approx(kinetic, rel=0.05)
     assert machine.grasp_failures == 0
     assert len(classifier.records) == 3
 
@@ -241,3 +244,53 @@ def test_object_pushed_out_of_its_zone_after_placing_fails_with_the_reason():
         d = machine.decisions[obj.name]
         assert not d.success and d.zone_reached is None
         assert d.failure_reason == f"pushed out of the {zone.name} zone after it was placed"
+
+
+@pytest.fixture(scope="module")
+def tall_light_cylinder():
+    """Seed 8's 99 g polycarbonate cylinder, 42 mm across and 60 mm tall (static friction 1.16 on the pad)."""
+    with Scene(SceneConfig(n_objects=6, seed=8)) as scene:
+        spec = next(o.spec for o in scene.objects if o.name == "object4_polycarbonate")
+    assert spec.dynamics.mass_kg == pytest.approx(0.0995, abs=1e-3) and spec.size_m[2] == pytest.approx(0.060, abs=1e-3)
+    return spec
+
+
+def test_object_whose_every_stroke_wedges_is_classified_from_the_presses(tall_light_cylinder):
+    """A stuck pad pushing the cylinder's top tips it about its leading edge, which raises the face into the
+    pad: the force climbs past 20 N at the start of each slide and the stroke fails, at 1.5 N and on the
+    0.5 N retries alike (at this seed's spots). The pad pressed and held the force each time, so the
+    robot classifies what the presses felt rather than give up, and sorts the cylinder."""
+    config = SortingConfig(stroke_force_n=(1.5, 1.5))
+    with Scene(SceneConfig(n_objects=0, seed=0), objects=[tall_light_cylinder]) as scene:
+        classifier = OracleClassifier()
+        machine = SortingMachine(scene, classifier, config, seed=0)
+        machine.run(max_ticks=20_000)
+        d = machine.decisions[tall_light_cylinder.name]
+        messages = [e.message for e in machine.events]
+        failed = [m for m in messages if m.startswith("stroke failed")]
+        assert len(failed) == 3 and all("above max_force_n" in m for m in failed)
+        assert [m.split(",")[0] for m in messages if m.startswith("stroking:")] == \
+            ["stroking: 1.50 N", "stroking: 0.50 N", "stroking: 0.50 N"]
+        assert "classifying what the presses felt" in failed[-1]
+        assert len(classifier.records) == 1 and d.strokes_taken == 3
+        assert d.success and d.zone_reached == "combustible"
+
+
+def test_slippery_heavy_block_is_squeezed_harder_by_the_friction_the_pad_measured():
+    """Seed 3's 451 g PTFE block (kinetic friction 0.24): the stroke measures the friction, and the fingers'
+    cap is the mass-based one times 0.5 / 0.24 (about 2.1); without the correction it is the mass-based one."""
+    with Scene(SceneConfig(n_objects=6, seed=3)) as scene:
+        spec = next(o.spec for o in scene.objects if o.name == "object4_ptfe")
+    efforts = {}
+    for reference in (0.5, 0.0):
+        with Scene(SceneConfig(n_objects=0, seed=0), objects=[spec]) as scene:
+            machine = SortingMachine(scene, OracleClassifier(), SortingConfig(grasp_reference_friction=reference),
+                                     seed=0)
+            while machine.state is not State.LIFT:
+                machine.step()
+                assert machine.tick < 10_000
+            d = machine.decisions[spec.name]
+            assert d.measured_friction == pytest.approx(spec.material.friction_kinetic, rel=0.05)
+            efforts[reference] = scene.robot.gripper_effort_nm
+    assert efforts[0.0] > 1.5  # the mass-based cap is above the robot's default 1.5 N m already
+    assert efforts[0.5] / efforts[0.0] == pytest.approx(0.5 / spec.material.friction_kinetic, rel=0.05)
