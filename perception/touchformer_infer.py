@@ -60,8 +60,7 @@ class FusedTouchFormer(nn.Module):
         super().__init__()
         self.config = c = model.config
         self.reference = model  # front end (convolutions, gate) and heads are used as they are
-        d, eps = c.d_model, model.intra[MODALITIES[0]].ln_f.eps
-        self.eps = eps
+        self.eps = model.intra[MODALITIES[0]].ln_f.eps
         with torch.no_grad():
             cross: list[CrossModalAttention] = [model.cross[f"{t}_from_{s}"] for t, s in PAIRS]
             self.q_w, self.q_b = _stack_folded([(m.ln_target, m.attn.q) for m in cross])  # (12, d, d)
@@ -84,7 +83,6 @@ class FusedTouchFormer(nn.Module):
         self.src_index = torch.tensor(PAIR_SOURCE)
         self.tgt_index = torch.tensor(PAIR_TARGET)
         self._pe: dict[int, torch.Tensor] = {}
-        assert d % c.n_heads == 0
 
     def train(self, mode: bool = True) -> "FusedTouchFormer":
         if mode:

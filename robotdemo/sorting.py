@@ -11,7 +11,9 @@ the machine tick by tick. Per object::
   and the grasp are reachable (if not, the object fails "unreachable" and the next one is selected).
 * APPROACH folds the hand into the stroke posture and moves (Ruckig) so the pad hovers over the stroke start.
 * STROKE drives a :class:`~robotdemo.stroking.StrokeExecution` (press, settle, slide, lift; its phase is
-  :attr:`SortingMachine.stroke_phase` and each phase change is an event).
+  :attr:`SortingMachine.stroke_phase` and each phase change is an event). A failed stroke is retried gently at
+  another spot; if every stroke fails after pressing, the presses are classified. The slide also measures
+  the surface's kinetic friction against the pad, which sets how hard the fingers squeeze (GRASP).
 * CLASSIFY emulates the sensors on the stroke's contact trace (:func:`perception.tactile.emulate_stroke`, the
   ``clean`` or ``fire`` environment) and calls the classifier. Below ``confidence_threshold`` the object is
   stroked again at another spot (up to ``max_strokes``); the decision averages the strokes' probabilities.
