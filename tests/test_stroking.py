@@ -115,3 +115,14 @@ def test_force_settles_finely_on_a_light_stiff_block():
         sliding = np.array([phase is StrokePhase.SLIDE for phase in result.phase_log])
         force = result.force_log_n[sliding][int(0.1 / motion.config.control_period_s):]
         assert np.median(np.abs(force - 1.7)) < 0.1 * 1.7
+
+
+@pytest.mark.parametrize("mu", [0.24, 0.8])
+def test_sliding_friction_reads_the_kinetic_coefficient_and_none_without_a_slide(mu):
+    from perception.contact_trace import synthetic_press_slide_trace
+    from robotdemo.stroking import sliding_friction
+
+    trace = synthetic_press_slide_trace(friction_coefficient=mu, press_force_n=1.5, slide_speed_mps=0.02)
+    assert sliding_friction(trace) == pytest.approx(mu, rel=0.03)
+    pressed_only = synthetic_press_slide_trace(friction_coefficient=mu, slide_speed_mps=0.0)
+    assert sliding_friction(pressed_only) is None
