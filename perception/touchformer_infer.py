@@ -41,11 +41,13 @@ def _fold(ln: nn.LayerNorm, linear: nn.Linear) -> tuple[torch.Tensor, torch.Tens
 
 
 def _stack_folded(pairs: list[tuple[nn.LayerNorm, nn.Linear]]) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, d_in, d_out) folded weights and (P, 1, d_out) biases of P (LayerNorm, Linear) pairs."""
     folded = [_fold(ln, lin) for ln, lin in pairs]
-    return torch.stack([w for w, _ in folded]), torch.stack([c for _, c in folded])[:, None, :]  # (P, din, dout), (P, 1, dout)
+    return torch.stack([w for w, _ in folded]), torch.stack([c for _, c in folded])[:, None, :]
 
 
 def _stack_linear(linears: list[nn.Linear]) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, d_in, d_out) weights and (P, 1, d_out) biases of P Linear maps."""
     return (torch.stack([lin.weight.t() for lin in linears]).contiguous(),  # (P, d_in, d_out)
             torch.stack([lin.bias for lin in linears])[:, None, :])  # (P, 1, d_out)
 

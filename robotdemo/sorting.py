@@ -732,8 +732,8 @@ class SortingMachine:
         self._enter(State.APPROACH, f"approaching {obj.name} to stroke it")
 
     def _plan_next_stroke(self, geometry: RestingGeometry, gentle: bool = False) -> str:
-        """Draw the next stroke (another spot each time; after a failed stroke gently: ``gentle_force_n``, lowest speed)
-        and check it is reachable; returns a problem or ''."""
+        """Draw the next stroke (another spot each time; after a failed stroke gently: ``gentle_force_n`` and the
+        lowest speed) and check it is reachable; returns a problem or ''."""
         obj = self.current_object
         k = self.decisions[obj.name].strokes_taken
         rng = np.random.default_rng([self.seed, self.object_index[obj.name], k, 1])
@@ -910,8 +910,8 @@ class SortingMachine:
         zone = self.scene.zone_for(side.combustible)
         confidence = float(decision.probabilities.get(side.category, decision.confidence))
         felt = [mu for mu in (sliding_friction(r.trace) for r in self._stroke_results) if mu is not None]
-        self._update(measured_friction=float(np.median(felt)) if felt else None)
-        self._update(predicted_category=side.category, confidence=confidence,
+        self._update(measured_friction=float(np.median(felt)) if felt else None,
+                     predicted_category=side.category, confidence=confidence,
                      combustible_probability=side.combustible_probability, probabilities=dict(decision.probabilities),
                      gate_weights=dict(decision.gate_weights),
                      trusted_sensors=trusted, modalities_present=decision.modalities_present, target_zone=zone.name)
