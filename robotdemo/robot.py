@@ -6,7 +6,6 @@ All commands go through joint motors with the URDF's efforts (no teleporting aft
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 from typing import Sequence
 
