@@ -100,6 +100,9 @@ class TrainConfig:
             test split and of the validation split (stricter than the paper's split by stroke; what a robot
             meeting new objects needs to be selected on). USMC always holds out whole instances.
         num_threads: torch CPU threads; 0 leaves torch's default.
+        group_by_length: batches of strokes of similar length (:func:`length_grouped_batches`) instead of
+            uniformly shuffled ones, so that less of each batch is padding. Off by default: the committed robot
+            checkpoint was trained without it, and its training command must reproduce it.
         model_overrides: (field, value) pairs passed to the model config (e.g. (("d_model", 32),)).
         init_checkpoint: checkpoint folder to fine-tune from ("" trains from scratch); its norm stats and
             class names are kept.
@@ -123,6 +126,7 @@ class TrainConfig:
     val_fraction: float = 0.15
     split_by_object: bool = False
     num_threads: int = 0
+    group_by_length: bool = False
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -285,6 +289,27 @@ def predict(model: nn.Module, features: Sequence[StrokeFeatures], dims: Mapping[
     return Predictions(np.concatenate(logits), np.concatenate(emb), np.concatenate(alphas))
 
 
+def length_grouped_batches(order: np.ndarray, lengths: np.ndarray, batch_size: int, generator: torch.Generator,
+                           pool_batches: int = 8) -> list[np.ndarray]:
+    """Mini-batches of strokes of similar length, still random: the shuffled ``order`` is cut into pools of
+    ``pool_batches`` batches, each pool sorted by length (frames summed over the modalities) and cut into
+    batches, and the batches shuffled with ``generator``. Every stroke appears once and the number of batches
+    is ``ceil(len(order) / batch_size)``, as with plain shuffling (only the last pool can end short).
+
+    Why: a batch is padded to its longest stroke, and stroke lengths spread widely (sound frames: 10th
+    percentile 47, median 60, 90th 122, longest 243 on ``data/clean30``), so a uniformly drawn batch of 32 is
+    padded to about 2.5x the mean length and attention cost grows with the square of it.
+    """
+    pool = batch_size * pool_batches
+    batches: list[np.ndarray] = []
+    for start in range(0, len(order), pool):
+        chunk = order[start:start + pool]
+        chunk = chunk[np.argsort(-lengths[chunk], kind="stable")]
+        batches += [chunk[i:i + batch_size] for i in range(0, len(chunk), batch_size)]
+    perm = torch.randperm(len(batches), generator=generator).numpy()
+    return [batches[i] for i in perm]
+
+
 def cosine_lr(base_lr: float, step: int, total_steps: int) -> float:
     """lr at ``step`` (0-based) of a cosine decay from ``base_lr`` to 0 at ``total_steps``."""
     return 0.5 * base_lr * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))
@@ -409,6 +434,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     if n == 0:
         raise TrainError("no training strokes")
     steps_per_epoch = max(1, math.ceil(n / config.batch_size))
+    lengths = np.array([sum(0 if f.get(m) is None else len(f[m]) for m in MODALITIES) for f in norm_train])
     total_steps = config.epochs * steps_per_epoch
     identity = {"config": config.to_dict(), "class_names": list(names), "n_train": n, "n_val": len(norm_val)}
 
@@ -431,10 +457,11 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         torch.manual_seed(config.seed * 1_000_003 + epoch)  # dropout
         gen = torch.Generator().manual_seed(config.seed * 1_000_003 + epoch)  # order and noise
         order = torch.randperm(n, generator=gen).numpy()
+        batches = (length_grouped_batches(order, lengths, config.batch_size, gen) if config.group_by_length
+                   else [order[b * config.batch_size:(b + 1) * config.batch_size] for b in range(steps_per_epoch)])
         model.train()
         sums = {"loss": 0.0, "ce": 0.0, "contrastive": 0.0, "correct": 0.0}
-        for b in range(steps_per_epoch):
-            idx = order[b * config.batch_size:(b + 1) * config.batch_size]
+        for b, idx in enumerate(batches):
             if idx.size == 0:
                 continue
             step = epoch * steps_per_epoch + b
