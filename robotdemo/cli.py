@@ -71,7 +71,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          weight_decay=defaults.weight_decay if args.weight_decay is None else args.weight_decay,
                          feature_noise_std=(defaults.feature_noise_std if args.feature_noise is None
                                             else args.feature_noise),
-                         split_by_object=args.split_by_object, model_overrides=overrides)
+                         split_by_object=args.split_by_object, group_by_length=args.group_by_length,
+                         model_overrides=overrides)
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
     print(json.dumps(metrics, indent=2, default=str))
@@ -82,7 +83,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from perception.evaluate import evaluate_command
 
     summary = evaluate_command(args.data, args.out, quick=args.quick, fire_dir=args.fire, device=args.device,
-                               seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet)
+                               seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet,
+                               workers=args.workers, ablation=not args.no_ablation,
+                               robustness=not args.no_robustness)
     print(json.dumps(summary, indent=2, default=str))
     return 0
 
@@ -206,6 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--dropout", type=float, default=None, help="the model's dropout (default: the model's)")
     train.add_argument("--split-by-object", action="store_true",
                        help="ssmc/fine: test and validation strokes come from objects not trained on")
+    train.add_argument("--group-by-length", action="store_true",
+                       help="batches of strokes of similar length (less padding, faster epochs)")
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
     train.add_argument("--quiet", action="store_true")
     train.set_defaults(func=_cmd_train)
@@ -217,6 +222,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--quick", action="store_true", help="a small run (few epochs, one seed)")
     evaluate.add_argument("--seeds", type=int, nargs="*", default=None)
     evaluate.add_argument("--device", default="auto")
+    evaluate.add_argument("--workers", type=int, default=1,
+                          help="train the runs in this many processes first (one torch thread each)")
+    evaluate.add_argument("--no-ablation", action="store_true", help="leave the ablation runs out")
+    evaluate.add_argument("--no-robustness", action="store_true", help="leave the robustness curve out")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(func=_cmd_evaluate)
 

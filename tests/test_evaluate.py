@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 import torch
 
 from perception.dataset import write_dataset
-from perception.evaluate import PAPER, evaluate, g_mean
+from perception.evaluate import PAPER, evaluate, g_mean, quick_config
 from tests.test_dataset import make_material_strokes
 
 
@@ -59,6 +60,26 @@ def test_quick_evaluation_writes_report(tmp_path):
     for run in saved["table1"]["usmc"]["touchformer"]["runs"]:
         assert run["n_train"] + run["n_test"] == len(clean)
     assert np.isfinite(saved["seconds"])
+
+
+def test_parallel_training_gives_the_sequential_results(tmp_path):
+    torch.set_num_threads(1)
+    clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
+    write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
+    config = dataclasses.replace(quick_config(), models=("touchformer", "lstm", "reference"), ablation=False,
+                                 robustness_models=("lstm",), corruption_ratios=(0.0, 1.0), tsne=False)
+    runs = {}
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}"
+        runs[workers] = evaluate(tmp_path / "clean", out, config=config, progress=False, workers=workers)
+        assert (out / "REPORT.md").is_file()
+    for task in ("ssmc", "usmc", "fine"):
+        for model in ("touchformer", "lstm", "reference"):
+            assert (runs[1]["table1"][task][model]["accuracy"] == runs[2]["table1"][task][model]["accuracy"]), \
+                (task, model)
+    assert runs[1]["robustness"]["curves"] == runs[2]["robustness"]["curves"]
+    report = (tmp_path / "w2" / "REPORT.md").read_text()
+    assert "Not run in this report (`--no-ablation`)" in report and "no `--fire` data set given" in report
 
 
 def test_inference_benchmark_reports_latency(tmp_path):
