@@ -564,8 +564,10 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         rob_split = ssmc_split(records, s0)
         pending = [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in first if m != "reference"]
         pending += [(m, "ssmc", f"seed{s0}", s0, rob_split[0], float(p)) for m, p in rob_jobs if m != "reference"]
-        unique = {(m, t, name, p): (m, t, name, seed, idx, p) for m, t, name, seed, idx, p in reversed(pending)}
-        _pretrain(ctx, list(reversed(unique.values())), workers)  # one job per run folder, first come first
+        unique: dict[tuple, tuple] = {}
+        for job in pending:  # one job per run folder, at its first place
+            unique.setdefault((job[0], job[1], job[2], job[5]), job)
+        _pretrain(ctx, list(unique.values()), workers)
     bar = tqdm(total=len(jobs) + len(rob_jobs), desc="evaluate", disable=not progress)
 
     per: dict[tuple[str, str], list] = {}
