@@ -558,12 +558,13 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
             for model in dict.fromkeys(list(cfg.models) + ablation):
                 jobs.append((model, task, split_name, seed, split))
     rob_jobs = [(m, p) for p in cfg.corruption_ratios for m in cfg.robustness_models]
-    if workers > 1:  # Table-1 models first, then the ablation variants, then the robustness runs
-        first = [j for j in jobs if j[0] in cfg.models] + [j for j in jobs if j[0] not in cfg.models]
+    if workers > 1:  # Table 1 first, then the robustness curve (a target too), then the ablation variants
         s0 = cfg.seeds[0]
         rob_split = ssmc_split(records, s0)
-        pending = [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in first if m != "reference"]
-        pending += [(m, "ssmc", f"seed{s0}", s0, rob_split[0], float(p)) for m, p in rob_jobs if m != "reference"]
+        pending = [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in jobs if m in cfg.models]
+        pending += [(m, "ssmc", f"seed{s0}", s0, rob_split[0], float(p)) for m, p in rob_jobs]
+        pending += [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in jobs if m not in cfg.models]
+        pending = [job for job in pending if job[0] != "reference"]
         unique: dict[tuple, tuple] = {}
         for job in pending:  # one job per run folder, at its first place
             unique.setdefault((job[0], job[1], job[2], job[5]), job)
