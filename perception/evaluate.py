@@ -241,7 +241,9 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
             if drop == "none":
                 emb = preds.embedding
         result.update(best_epoch=res.best_epoch, best_val_accuracy=res.best_val_accuracy,
-                      checkpoint=str(res.checkpoint_dir), n_val=int(len(val)))
+                      checkpoint=str(res.checkpoint_dir), n_val=int(len(val)), epochs=len(res.history),
+                      train_accuracy_curve=[round(float(h["train_accuracy"]), 4) for h in res.history],
+                      val_accuracy_curve=[round(float(h["val_accuracy"]), 4) for h in res.history])
     y_test = y[test_idx]
     if len(test_idx) == 0:  # a train-only run (clean model of the fire experiment)
         result.update(accuracy=float("nan"), g_mean=float("nan"), missing={})
@@ -392,6 +394,46 @@ def _plot_tsne(path: Path, panels: Sequence[tuple[str, np.ndarray, np.ndarray]],
     plt.close(fig)
 
 
+def _fitting_summary(per: Mapping[tuple[str, str], Sequence[Mapping[str, Any]]], models: Sequence[str]
+                     ) -> dict[str, dict[str, dict[str, float]]]:
+    """Per task and model, over its runs: the best (chosen) epoch, the training accuracy of the last epoch, the
+    best validation accuracy and the test accuracy: how far each model fits its training strokes beyond what
+    carries over to strokes it has not seen."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for task in ("ssmc", "usmc", "fine"):
+        for model in models:
+            runs = [r for r in per.get((task, model), []) if r.get("train_accuracy_curve")]
+            if runs:
+                out.setdefault(task, {})[model] = {
+                    "best_epoch": _mean_std([r["best_epoch"] for r in runs]),
+                    "final_train_accuracy": _mean_std([r["train_accuracy_curve"][-1] for r in runs]),
+                    "best_val_accuracy": _mean_std([r["best_val_accuracy"] for r in runs]),
+                    "test_accuracy": _mean_std([r["accuracy"] for r in runs])}
+    return out
+
+
+def _plot_training_curves(path: Path, runs: Mapping[str, Mapping[str, Any]]) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.0, 3.8))
+    for i, (model, run) in enumerate(runs.items()):
+        epochs = np.arange(1, len(run["val_accuracy_curve"]) + 1)
+        color = f"C{i}"
+        label = MODEL_LABEL.get(model, model)
+        ax.plot(epochs, 100 * np.asarray(run["train_accuracy_curve"]), "--", color=color, label=f"{label} train")
+        ax.plot(epochs, 100 * np.asarray(run["val_accuracy_curve"]), "-", color=color, label=f"{label} validation")
+        ax.axvline(run["best_epoch"], color=color, alpha=0.3, lw=1)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("accuracy [%]")
+    ax.set_title(f"SSMC {next(iter(runs.values()))['split']}: training vs validation (vertical: chosen epoch)",
+                 fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _pct(stat: Mapping[str, float]) -> str:
     return "-" if stat["mean"] != stat["mean"] else f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
 
@@ -479,6 +521,19 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                       f"{PAPER['fishm']['with_noise']['ssmc']} % with environment noise.", ""]
     else:
         lines += ["## Clean -> fire shift", "", "Not run in this report (no `--fire` data set given).", ""]
+
+    if results.get("fitting"):
+        lines += ["## How far the models fit (mean over runs)", "",
+                  "Training accuracy at the last epoch against the best validation accuracy (which chose the epoch) "
+                  "and the test accuracy. Figure: `training_curves.png`.", "",
+                  "| task | model | chosen epoch | training acc. [%] | validation acc. [%] | test acc. [%] |",
+                  "|---|---|---|---|---|---|"]
+        for task, per_model in results["fitting"].items():
+            for model, row in per_model.items():
+                lines.append(f"| {TASK_LABEL[task]} | {MODEL_LABEL.get(model, model)} | "
+                             f"{row['best_epoch']['mean']:.1f} | {_pct(row['final_train_accuracy'])} | "
+                             f"{_pct(row['best_val_accuracy'])} | {_pct(row['test_accuracy'])} |")
+        lines.append("")
 
     lines += ["## Deviations from the paper", ""]
     lines += [f"- **{k}**: {v}" for k, v in results["deviations"].items()]
@@ -611,6 +666,12 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
                 panels.append((f"{TASK_LABEL[task]}: {title}", run["_embedding"], run["_y_true"]))
         _plot_tsne(out_dir / "tsne.png", panels, cfg.seeds[0])
         figures.append("tsne.png")
+
+    curves = {m: per[("ssmc", m)] for m in cfg.models if m != "reference" and ("ssmc", m) in per}
+    if curves:
+        results["fitting"] = _fitting_summary(per, [m for m in cfg.models if m != "reference"])
+        _plot_training_curves(out_dir / "training_curves.png", {m: runs[0] for m, runs in curves.items()})
+        figures.append("training_curves.png")
 
     if rob_jobs:
         s = cfg.seeds[0]

@@ -35,7 +35,8 @@ def test_quick_evaluation_writes_report(tmp_path):
     results = evaluate(tmp_path / "clean", out, quick=True, fire_dir=tmp_path / "fire", progress=False,
                        command="robotdemo evaluate --quick")
 
-    for name in ("REPORT.md", "results.json", "robustness.png", "tsne.png", "confusion_ssmc_touchformer.png",
+    for name in ("REPORT.md", "results.json", "robustness.png", "tsne.png", "training_curves.png",
+                 "confusion_ssmc_touchformer.png",
                  "confusion_usmc_touchformer.png", "confusion_fine_touchformer.png"):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     saved = json.loads((out / "results.json").read_text())
@@ -48,6 +49,11 @@ def test_quick_evaluation_writes_report(tmp_path):
         assert len(saved["table1"][task]["touchformer"]["runs"]) == (2 if task == "usmc" else 1)
     assert set(saved["missing_modality"]["touchformer"]) == {"sound", "normal", "friction", "accel", "none"}
     assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer"}
+    fit = saved["fitting"]["ssmc"]["touchformer"]
+    assert 1 <= fit["best_epoch"]["mean"] <= 2 and 0.0 <= fit["final_train_accuracy"]["mean"] <= 1.0
+    run = saved["table1"]["ssmc"]["touchformer"]["runs"][0]
+    assert len(run["val_accuracy_curve"]) == 2
+    assert max(run["val_accuracy_curve"]) == pytest.approx(run["best_val_accuracy"], abs=1e-4)
     assert set(saved["robustness"]["curves"]["touchformer"]) == {"0.0", "0.5", "1.0"}
     assert len(saved["fire"]["rows"]) == 5
     assert all(0.0 <= row["accuracy"] <= 1.0 for row in saved["fire"]["rows"])
