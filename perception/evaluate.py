@@ -282,8 +282,8 @@ def _pretrain(ctx: _Context, jobs: Sequence[tuple[str, str, str, int, np.ndarray
     """Train the runs of ``jobs`` (model, task, split name, seed, training indices, corruption ratio) in
     ``workers`` forked processes of one torch thread each. The experiments then run as without workers and find
     every run finished in its folder (:func:`perception.train.train` reuses it), so the results are those of a
-    sequential evaluation. One thread per process: at our batch and sequence sizes two single-thread trainings
-    side by side finish sooner than two trainings one after the other on two threads each."""
+    sequential evaluation. One torch thread per process, so ``workers`` processes share as many cores without
+    oversubscribing them."""
     import multiprocessing as mp
 
     global _POOL_CONTEXT
@@ -667,10 +667,10 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         _plot_tsne(out_dir / "tsne.png", panels, cfg.seeds[0])
         figures.append("tsne.png")
 
-    curves = {m: per[("ssmc", m)] for m in cfg.models if m != "reference" and ("ssmc", m) in per}
-    if curves:
-        results["fitting"] = _fitting_summary(per, [m for m in cfg.models if m != "reference"])
-        _plot_training_curves(out_dir / "training_curves.png", {m: runs[0] for m, runs in curves.items()})
+    fit_runs = {m: per[("ssmc", m)][0] for m in cfg.models if m != "reference" and ("ssmc", m) in per}
+    if fit_runs:
+        results["fitting"] = _fitting_summary(per, list(fit_runs))
+        _plot_training_curves(out_dir / "training_curves.png", fit_runs)
         figures.append("training_curves.png")
 
     if rob_jobs:
