@@ -182,6 +182,11 @@ def _train_config(ctx: _Context, model: str, task: str, seed: int, **changes: An
                                model_overrides=tuple(overrides), **changes)
 
 
+def _class_names(records, task: str) -> tuple[str, ...]:
+    """The class list of ``task`` on ``records`` (sorted labels), shared by a run and its pre-training."""
+    return tuple(sorted(set(labels_of(records, task))))
+
+
 def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, split_name: str, seed: int,
                corruption: float, records, features, class_names: tuple[str, ...], run_name: str | None,
                train_changes: Mapping[str, Any] | None) -> tuple[TrainResult, TrainConfig, np.ndarray]:
@@ -209,7 +214,7 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
     features = ctx.features if features is None else features
     summaries = ctx.summaries if summaries is None else summaries
     labels = labels_of(records, task)
-    names = tuple(sorted(set(labels))) if class_names is None else tuple(class_names)
+    names = _class_names(records, task) if class_names is None else tuple(class_names)
     y = np.array([names.index(l) for l in labels])
     train_idx, test_idx = split
     result: dict[str, Any] = {"model": model, "task": task, "split": split_name, "seed": seed,
@@ -272,7 +277,7 @@ def _pretrain_job(job: tuple[str, str, str, int, np.ndarray, float]) -> str:
     model, task, split_name, seed, train_idx, corruption = job
     ctx = _POOL_CONTEXT
     assert ctx is not None, "_pretrain_job runs only in a worker forked by _pretrain"
-    names = tuple(sorted(set(labels_of(ctx.data.records, task))))
+    names = _class_names(ctx.data.records, task)
     _train_run(ctx, model, task, train_idx, split_name, seed, corruption, ctx.data.records, ctx.features, names,
                None, None)
     return f"{task} {model} {split_name} p={corruption}"
@@ -613,9 +618,9 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
             for model in dict.fromkeys(list(cfg.models) + ablation):
                 jobs.append((model, task, split_name, seed, split))
     rob_jobs = [(m, p) for p in cfg.corruption_ratios for m in cfg.robustness_models]
+    s0 = cfg.seeds[0]
+    rob_split = ssmc_split(records, s0) if rob_jobs else None  # the robustness curve's split (first seed)
     if workers > 1:  # Table 1 first, then the robustness curve (a target too), then the ablation variants
-        s0 = cfg.seeds[0]
-        rob_split = ssmc_split(records, s0)
         pending = [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in jobs if m in cfg.models]
         pending += [(m, "ssmc", f"seed{s0}", s0, rob_split[0], float(p)) for m, p in rob_jobs]
         pending += [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in jobs if m not in cfg.models]
@@ -674,12 +679,10 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         figures.append("training_curves.png")
 
     if rob_jobs:
-        s = cfg.seeds[0]
-        split = ssmc_split(records, s)
         curves: dict[str, dict[str, float]] = {}
         for model, p in rob_jobs:
             bar.set_postfix_str(f"robustness {model} p={p}")
-            run = _run(ctx, model, "ssmc", split, f"seed{s}", s, corruption=float(p))
+            run = _run(ctx, model, "ssmc", rob_split, f"seed{s0}", s0, corruption=float(p))
             curves.setdefault(model, {})[repr(float(p))] = run["accuracy"]
             bar.update()
         results["robustness"] = {"corruption_std": cfg.corruption_std, "curves": curves}
