@@ -15,6 +15,7 @@ over present modalities, so training and evaluation code treat all models alike.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -231,9 +232,14 @@ def build_model(name: str, in_dims: tuple[int, ...], n_classes: int, **overrides
 
     Raises:
         KeyError: unknown model name (the message lists the known ones).
+        ValueError: an override that is not a field of the model's config.
     """
     if name not in MODEL_REGISTRY:
         raise KeyError(f"unknown model {name!r}; known: {sorted(MODEL_REGISTRY)}")
     config_cls, model_cls = MODEL_REGISTRY[name]
+    fields = {f.name for f in dataclasses.fields(config_cls)} - {"in_dims", "n_classes"}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise ValueError(f"{name}: unknown model option(s) {unknown}; known: {sorted(fields)}")
     config = config_cls(in_dims=tuple(in_dims), n_classes=n_classes, **overrides)
     return config, model_cls(config)

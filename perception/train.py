@@ -103,6 +103,9 @@ class TrainConfig:
         group_by_length: batches of strokes of similar length (:func:`length_grouped_batches`) instead of
             uniformly shuffled ones, so that less of each batch is padding. Off by default: the committed robot
             checkpoint was trained without it, and its training command must reproduce it.
+        modality_dropout: training only: probability that each present modality of a sample is removed (marked
+            missing, as a sensor that dropped out; :func:`drop_modalities`), at least one kept per sample.
+            Trains a model not to lean on one stream alone. 0 disables it.
         model_overrides: (field, value) pairs passed to the model config (e.g. (("d_model", 32),)).
         init_checkpoint: checkpoint folder to fine-tune from ("" trains from scratch); its norm stats and
             class names are kept.
@@ -127,6 +130,7 @@ class TrainConfig:
     split_by_object: bool = False
     num_threads: int = 0
     group_by_length: bool = False
+    modality_dropout: float = 0.0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -146,6 +150,8 @@ class TrainConfig:
             raise ValueError("epochs and batch_size must be >= 1")
         if not 0.0 <= self.corruption_ratio <= 1.0:
             raise ValueError(f"corruption_ratio must lie in [0, 1], got {self.corruption_ratio}")
+        if not 0.0 <= self.modality_dropout < 1.0:
+            raise ValueError(f"modality_dropout must lie in [0, 1), got {self.modality_dropout}")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
 
@@ -241,6 +247,28 @@ def add_feature_noise(batch: FeatureBatch, std: float, generator: torch.Generato
     x = {m: batch.x[m] + torch.randn(batch.x[m].shape, generator=generator) * std
          * (~batch.padding[m]).to(batch.x[m].dtype).unsqueeze(-1) for m in MODALITIES}
     return dataclasses.replace(batch, x=x)
+
+
+def drop_modalities(batch: FeatureBatch, prob: float, generator: torch.Generator) -> FeatureBatch:
+    """Training augmentation: each present modality of each sample is removed with probability ``prob``
+    (features zeroed, every step padding, ``present`` False: exactly what :func:`collate` gives for a missing
+    stream). A sample keeps at least one modality: if all of its present ones were drawn, the one with the
+    largest draw survives."""
+    if prob <= 0:
+        return batch
+    present = batch.present_matrix()  # (B, M)
+    draw = torch.rand(present.shape, generator=generator)  # (B, M)
+    drop = (draw < prob) & present
+    survivor = draw.masked_fill(~present, -1.0).argmax(dim=1)  # (B,)
+    all_gone = (present & ~drop).sum(dim=1) == 0  # (B,)
+    drop[all_gone, survivor[all_gone]] = False
+    x, padding, kept = {}, {}, {}
+    for i, m in enumerate(MODALITIES):
+        d = drop[:, i]  # (B,)
+        x[m] = batch.x[m] * (~d).to(batch.x[m].dtype)[:, None, None]
+        padding[m] = batch.padding[m] | d[:, None]
+        kept[m] = batch.present[m] & ~d
+    return dataclasses.replace(batch, x=x, padding=padding, present=kept)
 
 
 @dataclass(frozen=True)
@@ -440,6 +468,11 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
 
     resume_dir = out_dir / RESUME_DIR
     record = _load_resume(resume_dir, model, optimizer, device)
+    if record is not None and isinstance(record.get("config"), dict):
+        try:  # a run saved before a field existed has that field at its default
+            record = {**record, "config": TrainConfig.from_dict(record["config"]).to_dict()}
+        except (TypeError, ValueError, KeyError):
+            pass  # not a config of this version: the identity check below says so
     if record is not None and {k: record.get(k) for k in identity} != identity:
         raise TrainError(f"{resume_dir}: holds a run with another config, class list or data size; "
                          f"use a fresh output folder")
@@ -470,6 +503,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
                 group["lr"] = lr
             batch = collate([norm_train[i] for i in idx], dims, labels=y_train[idx].tolist())
             batch = add_feature_noise(batch, config.feature_noise_std, gen)
+            batch = drop_modalities(batch, config.modality_dropout, gen)
             batch = corrupt_batch(batch, config.corruption_ratio, config.corruption_std, gen).to(device)
             out = model(batch)
             terms = total_loss(out.logits, out.embedding, batch.labels, model_config.cer_lambda, model_config.cer_tau)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import sys
 from pathlib import Path
@@ -64,7 +65,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from perception.train import TrainConfig, train_command
 
     defaults = TrainConfig()
-    overrides = tuple((k, v) for k, v in (("dropout", args.dropout),) if v is not None)
+    overrides = tuple((k, v) for k, v in (("dropout", args.dropout),) if v is not None) + tuple(
+        _model_option(text) for text in args.model_option)
     config = TrainConfig(model=args.model, task=args.task, epochs=args.epochs, batch_size=args.batch_size,
                          seed=args.seed, device=args.device,
                          lr=defaults.lr if args.lr is None else args.lr,
@@ -72,11 +74,23 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          feature_noise_std=(defaults.feature_noise_std if args.feature_noise is None
                                             else args.feature_noise),
                          split_by_object=args.split_by_object, group_by_length=args.group_by_length,
-                         model_overrides=overrides)
+                         modality_dropout=args.modality_dropout, model_overrides=overrides)
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
     print(json.dumps(metrics, indent=2, default=str))
     return 0
+
+
+def _model_option(text: str) -> tuple[str, object]:
+    """``"d_model=32"`` -> ("d_model", 32): a Python literal after the first '='."""
+    key, sep, value = text.partition("=")
+    if not sep or not key.strip():
+        raise ValueError(f"--model-option expects KEY=VALUE (for example d_model=32), got {text!r}")
+    try:
+        parsed = ast.literal_eval(value.strip())
+    except (ValueError, SyntaxError):
+        raise ValueError(f"--model-option {text!r}: {value!r} is not a number, bool or tuple") from None
+    return key.strip(), parsed
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -211,6 +225,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="ssmc/fine: test and validation strokes come from objects not trained on")
     train.add_argument("--group-by-length", action="store_true",
                        help="batches of strokes of similar length (less padding, faster epochs)")
+    train.add_argument("--modality-dropout", type=float, default=0.0,
+                       help="training: probability of removing each modality of a stroke (default 0)")
+    train.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
+                       help="a field of the model's config, e.g. d_model=32 (repeatable)")
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
     train.add_argument("--quiet", action="store_true")
     train.set_defaults(func=_cmd_train)

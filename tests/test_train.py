@@ -13,7 +13,8 @@ import torch
 from perception.checkpoint import load_checkpoint
 from perception.dataset import labels_of, ssmc_split, validation_split, write_dataset
 from perception.features import collate, feature_dims, featurize
-from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, featurize_records,
+from perception.baselines import build_model
+from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, drop_modalities, featurize_records,
                               length_grouped_batches, predict, task_split, train, train_command)
 from tests.test_dataset import make_material_strokes
 
@@ -149,6 +150,55 @@ def test_corruption_and_schedule():
     assert cosine_lr(1e-3, 100, 100) == pytest.approx(0.0)
 
 
+def test_modality_dropout_marks_streams_missing_and_keeps_one():
+    recs = make_material_strokes(2, n_categories=2, n_instances=2, n_objects=2, n_strokes=16, duration_s=0.2)
+    cfg = TrainConfig().feature_config
+    batch = collate([featurize(r, cfg) for r in recs], feature_dims(cfg))
+    gen = torch.Generator().manual_seed(0)
+    assert drop_modalities(batch, 0.0, gen) is batch
+    dropped = drop_modalities(batch, 0.9, gen)
+    before, after = batch.present_matrix(), dropped.present_matrix()
+    assert torch.all(after.sum(dim=1) >= 1)  # every stroke keeps a stream
+    assert torch.all(before | ~after) and after.sum() < before.sum() * 0.5  # only removes, and many at 0.9
+    for i, m in enumerate(batch.x):
+        gone = before[:, i] & ~after[:, i]
+        assert torch.all(dropped.x[m][gone] == 0) and torch.all(dropped.padding[m][gone])
+        kept = after[:, i]
+        assert torch.equal(dropped.x[m][kept], batch.x[m][kept])
+        assert torch.equal(dropped.padding[m][kept], batch.padding[m][kept])
+    again = drop_modalities(batch, 0.9, torch.Generator().manual_seed(0))
+    assert torch.equal(again.present_matrix(), after)
+    with pytest.raises(ValueError, match="modality_dropout"):
+        TrainConfig(modality_dropout=1.0)
+
+
+def test_modality_dropout_training_learns_and_predicts_without_sound(toy, tmp_path):
+    config = _config(epochs=6, modality_dropout=0.3)
+    result = _fit(toy, config, tmp_path / "md")
+    assert _test_accuracy(toy, result.checkpoint_dir) >= 0.6
+    ckpt = load_checkpoint(result.checkpoint_dir)
+    assert TrainConfig.from_dict(ckpt.meta["train_config"]).modality_dropout == 0.3
+    preds = predict(ckpt.model, [toy["feats"][i] for i in toy["test"]], feature_dims(ckpt.feature_config),
+                    stats=ckpt.norm_stats, drop=("sound",))
+    assert np.all(np.isfinite(preds.logits)) and np.all(preds.alphas[:, 0] == 0)
+
+
+def test_resume_state_from_before_a_config_field_existed_is_resumed(toy, tmp_path):
+    config = _config(epochs=2)
+    full = _fit(toy, config, tmp_path / "run")
+    state = tmp_path / "run" / "resume" / "state.json"
+    record = json.loads(state.read_text())
+    del record["config"]["modality_dropout"]  # as written before the field was added
+    state.write_text(json.dumps(record))
+    again = _fit(toy, config, tmp_path / "run")
+    assert again.resumed_from_epoch == 2 and again.best_epoch == full.best_epoch
+
+
+def test_unknown_model_option_names_the_field():
+    with pytest.raises(ValueError, match="unknown model option.*'d_modle'"):
+        build_model("touchformer", (4, 4, 4, 4), 3, d_modle=32)
+
+
 def test_config_validation_and_round_trip():
     with pytest.raises(ValueError, match="unknown model"):
         TrainConfig(model="nope")
@@ -202,3 +252,14 @@ def test_classifier_bench_scores_the_checkpoints_own_test_part(tmp_path):
     write_dataset(tmp_path / "other", recs[:-1], env="clean", seed=5)
     with pytest.raises(RobotDemoError, match="trained on another data set"):
         run_classifier_benchmark(tmp_path / "run" / "checkpoint", tmp_path / "other")
+
+
+def test_train_cli_model_option_errors_are_one_line(tmp_path, capsys):
+    from robotdemo.cli import _model_option, main
+
+    assert _model_option("d_model=32") == ("d_model", 32)
+    assert _model_option("kernel_sizes=(3, 3, 3, 3)") == ("kernel_sizes", (3, 3, 3, 3))
+    for bad, message in (("d_model", "expects KEY=VALUE"), ("d_model=wide", "not a number")):
+        code = main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--model-option", bad])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1
