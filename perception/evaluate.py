@@ -245,6 +245,7 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
             outputs[drop] = preds.pred
             if drop == "none":
                 emb = preds.embedding
+                result.update(_modality_weights(preds.alphas, test_feats))
         result.update(best_epoch=res.best_epoch, best_val_accuracy=res.best_val_accuracy,
                       checkpoint=str(res.checkpoint_dir), n_val=int(len(val)), epochs=len(res.history),
                       train_accuracy_curve=[round(float(h["train_accuracy"]), 4) for h in res.history],
@@ -261,6 +262,15 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
     result["_y_true"], result["_y_pred"], result["_embedding"], result["_names"] = y_test, outputs["none"], emb, names
     ctx.cache[key] = result
     return result
+
+
+def _modality_weights(alphas: np.ndarray, features: Sequence[Mapping[str, Any]]) -> dict[str, list[float]]:
+    """Per modality (:data:`MODALITIES` order): the mean weight alpha over the strokes where it is present, and
+    the share of those strokes on which the gate dropped it (alpha 0)."""
+    present = np.array([[f.get(m) is not None for m in MODALITIES] for f in features], dtype=bool).reshape(-1, 4)
+    n = np.maximum(present.sum(axis=0), 1)
+    return {"alpha_mean": ((alphas * present).sum(axis=0) / n).round(4).tolist(),
+            "gate_dropped_share": (((alphas == 0) & present).sum(axis=0) / n).round(4).tolist()}
 
 
 _POOL_CONTEXT: _Context | None = None
@@ -501,6 +511,21 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
     else:
         lines += ["## Ablation", "", "Not run in this report (`--no-ablation`).", ""]
 
+    if results.get("modality_weights"):
+        lines += ["## Which sensors the models trusted (mean weight alpha on the test strokes; share dropped by "
+                  "the gate)", "",
+                  "alpha_m weights each modality's features (the four sum to 1); the gate drops a modality whose "
+                  "gate value falls below gate_th. 'fusion only' has uniform weights by construction.", "",
+                  "| task | model | " + " | ".join(f"alpha {MODALITY_SYMBOL[m]}" for m in MODALITIES) + " | "
+                  + " | ".join(f"dropped {MODALITY_SYMBOL[m]} [%]" for m in MODALITIES) + " |",
+                  "|---|---|" + "---|" * (2 * len(MODALITIES))]
+        for task, per_model in results["modality_weights"].items():
+            for model, row in per_model.items():
+                lines.append(f"| {TASK_LABEL[task]} | {MODEL_LABEL.get(model, model)} | "
+                             + " | ".join(f"{a:.3f}" for a in row["alpha_mean"]) + " | "
+                             + " | ".join(f"{100 * d:.1f}" for d in row["gate_dropped_share"]) + " |")
+        lines.append("")
+
     if results.get("robustness"):
         rob = results["robustness"]
         ps = sorted({p for curve in rob["curves"].values() for p in curve}, key=float)
@@ -530,7 +555,8 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
     if results.get("fitting"):
         lines += ["## How far the models fit (mean over runs)", "",
                   "Training accuracy at the last epoch against the best validation accuracy (which chose the epoch) "
-                  "and the test accuracy. Figure: `training_curves.png`.", "",
+                  "and the test accuracy, for the Table-1 networks and the ablation variants. Figure: "
+                  "`training_curves.png`.", "",
                   "| task | model | chosen epoch | training acc. [%] | validation acc. [%] | test acc. [%] |",
                   "|---|---|---|---|---|---|"]
         for task, per_model in results["fitting"].items():
@@ -646,6 +672,11 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         results["ablation"] = {m: {t: _mean_std([r["accuracy"] for r in per[(t, m)]]) for t in ("ssmc", "usmc", "fine")}
                                for m in ablation}
 
+    variants = [m for m in dict.fromkeys(["touchformer"] + ablation) if ("ssmc", m) in per]
+    results["modality_weights"] = {
+        t: {m: {k: np.mean([r[k] for r in per[(t, m)]], axis=0).round(4).tolist()
+                for k in ("alpha_mean", "gate_dropped_share")} for m in variants} for t in ("ssmc", "usmc", "fine")}
+
     # confusion matrices: each Table-1 model on SSMC (first seed), TouchFormer on USMC (all folds) and fine
     for model in cfg.models:
         run = per[("ssmc", model)][0]
@@ -674,7 +705,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
 
     fit_runs = {m: per[("ssmc", m)][0] for m in cfg.models if m != "reference" and ("ssmc", m) in per}
     if fit_runs:
-        results["fitting"] = _fitting_summary(per, list(fit_runs))
+        results["fitting"] = _fitting_summary(per, list(dict.fromkeys(list(fit_runs) + ablation)))
         _plot_training_curves(out_dir / "training_curves.png", fit_runs)
         figures.append("training_curves.png")
 

@@ -49,6 +49,12 @@ def test_quick_evaluation_writes_report(tmp_path):
         assert len(saved["table1"][task]["touchformer"]["runs"]) == (2 if task == "usmc" else 1)
     assert set(saved["missing_modality"]["touchformer"]) == {"sound", "normal", "friction", "accel", "none"}
     assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer"}
+    weights = saved["modality_weights"]["usmc"]
+    assert weights["touchformer_fusion"]["alpha_mean"] == pytest.approx([0.25] * 4, abs=1e-4)  # uniform
+    assert weights["touchformer_fusion"]["gate_dropped_share"] == [0.0] * 4
+    for model in ("touchformer", "touchformer_mag"):
+        assert sum(weights[model]["alpha_mean"]) == pytest.approx(1.0, abs=1e-3)  # every toy stroke has all four
+        assert all(0.0 <= d <= 1.0 for d in weights[model]["gate_dropped_share"])
     fit = saved["fitting"]["ssmc"]["touchformer"]
     assert 1 <= fit["best_epoch"]["mean"] <= 2 and 0.0 <= fit["final_train_accuracy"]["mean"] <= 1.0
     run = saved["table1"]["ssmc"]["touchformer"]["runs"][0]
@@ -61,6 +67,7 @@ def test_quick_evaluation_writes_report(tmp_path):
     assert saved["table1"]["ssmc"]["reference"]["accuracy"]["mean"] > 0.6
     report = (out / "REPORT.md").read_text()
     assert str(PAPER["table1"]["ssmc"]["touchformer"][0]) in report and "Deviations" in report
+    assert "Which sensors the models trusted" in report
     assert results["provenance"]["data_manifest_sha256"] in report
     # USMC test instances never appear in the training part of their fold
     for run in saved["table1"]["usmc"]["touchformer"]["runs"]:
