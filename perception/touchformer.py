@@ -66,6 +66,9 @@ class TouchFormerConfig:
         emb_dropout: dropout on the conv embeddings (authors' code: 0.25).
         cer_lambda: weight lambda of the CER loss in L_cls + lambda L_C (0 turns CER off).
         cer_tau: CER temperature tau.
+        gate_straight_through: training only: gradients reach a gate that fell below gate_th as if its
+            modality had been kept (:func:`mag_weights`); what the model computes is unchanged. Off by default
+            (the paper does not say how a dropped gate learns).
     """
 
     in_dims: tuple[int, ...]
@@ -84,6 +87,7 @@ class TouchFormerConfig:
     emb_dropout: float = 0.25
     cer_lambda: float = 0.1
     cer_tau: float = 0.2
+    gate_straight_through: bool = False
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -149,8 +153,8 @@ def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return (x * w).sum(dim=1) / w.sum(dim=1).clamp(min=1.0)  # (B, d)
 
 
-def mag_weights(gates: torch.Tensor, present: torch.Tensor, gate_th: float, temperature: float = 1.0
-                ) -> torch.Tensor:
+def mag_weights(gates: torch.Tensor, present: torch.Tensor, gate_th: float, temperature: float = 1.0,
+                straight_through: bool = False) -> torch.Tensor:
     """MAG modality weights: softmax of the gates over kept modalities.
 
     Args:
@@ -158,11 +162,24 @@ def mag_weights(gates: torch.Tensor, present: torch.Tensor, gate_th: float, temp
         present: (B, M) bool, False for missing modalities.
         gate_th: modalities with g_m < gate_th are dropped.
         temperature: softmax temperature (1 in the paper).
+        straight_through: the returned values are unchanged, but gradients flow as if no modality were
+            dropped (softmax over all present gates), so a gate that fell below gate_th still learns whether
+            its modality would have helped (a straight-through estimator for the hard threshold).
 
     Returns:
         (B, M) alphas: 0 for dropped/missing modalities, the rest sum to 1. If every present modality is
         below the threshold, the present one with the largest gate is kept; with none present, all 0.
     """
+    hard = _thresholded_weights(gates, present, gate_th, temperature)  # (B, M)
+    if not straight_through:
+        return hard
+    soft = _thresholded_weights(gates, present, 0.0, temperature)  # (B, M), nothing dropped
+    return hard + (soft - soft.detach())
+
+
+def _thresholded_weights(gates: torch.Tensor, present: torch.Tensor, gate_th: float, temperature: float
+                         ) -> torch.Tensor:
+    """:func:`mag_weights` without the straight-through option."""
     kept = present & (gates >= gate_th)  # (B, M)
     best = gates.masked_fill(~present, -1.0).argmax(dim=1)  # (B,)
     fallback = F.one_hot(best, gates.shape[1]).bool() & present  # (B, M)
@@ -328,7 +345,8 @@ class TouchFormer(nn.Module):
         pooled_in = torch.stack([masked_mean(x_hat[m], valid[m]) for m in MODALITIES], dim=1)  # (B, M, d)
         gates = self.gate(pooled_in) * present  # (B, M), 0 for missing
         if c.use_mag:
-            alphas = mag_weights(gates, present, c.gate_th, c.gate_temperature)  # (B, M)
+            alphas = mag_weights(gates, present, c.gate_th, c.gate_temperature,
+                                 straight_through=c.gate_straight_through and self.training)  # (B, M)
         else:
             alphas = uniform_weights(present)  # (B, M)
         a = {m: alphas[:, i, None, None] for i, m in enumerate(MODALITIES)}  # (B, 1, 1) each

@@ -174,6 +174,37 @@ def test_mag_weights_threshold_and_softmax():
     assert sharp[0, 0] > alphas[0, 0] and torch.allclose(sharp.sum(dim=1), torch.ones(3))
 
 
+def test_straight_through_gate_keeps_the_values_and_lets_dropped_gates_learn():
+    gates = torch.tensor([[0.9, 0.05, 0.6, 0.3]], requires_grad=True)
+    present = torch.ones(1, 4, dtype=torch.bool)
+    weight = torch.tensor([[0.0, 1.0, 0.0, 0.0]])  # a loss that wants more of the dropped modality
+    hard = mag_weights(gates, present, gate_th=0.1)
+    (hard * weight).sum().backward()
+    assert gates.grad[0, 1] == 0  # the plain threshold: the dropped gate gets nothing
+    gates.grad = None
+    st = mag_weights(gates, present, gate_th=0.1, straight_through=True)
+    assert torch.allclose(st, hard.detach()) and st[0, 1] == 0
+    (st * weight).sum().backward()
+    assert gates.grad[0, 1] > 0  # it would rise
+
+
+def test_straight_through_gate_only_while_training():
+    torch.manual_seed(4)
+    batch = make_batch(seed=18)
+    plain = TouchFormer(tiny_config(gate_th=0.5))
+    st = TouchFormer(tiny_config(gate_th=0.5, gate_straight_through=True))
+    st.load_state_dict(plain.state_dict())
+    with torch.no_grad():
+        for m in (plain, st):
+            m.gate.fc2.bias.fill_(0.0)  # gates near 0.5: some dropped, some kept
+    for mode in ("train", "eval"):
+        torch.manual_seed(5)
+        a = getattr(plain, mode)()(batch)
+        torch.manual_seed(5)
+        b = getattr(st, mode)()(batch)
+        assert torch.allclose(a.logits, b.logits, atol=1e-6) and torch.equal(a.alphas == 0, b.alphas == 0)
+
+
 def test_gate_th_drops_low_gates_in_the_model():
     torch.manual_seed(1)
     batch = make_batch(seed=15)
