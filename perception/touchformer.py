@@ -20,6 +20,8 @@ Choices the paper leaves open, made here:
   kept (alpha = 1), so the model always predicts from something. A sample with no modality at all gets
   all-zero alphas and the classifier sees only its bias.
 - ``use_mag=False`` is the ablation "transformer fusion only": alpha = 1 / (number of present modalities).
+- A modality dropped by the threshold gets no gradient through its alpha; ``gate_straight_through=True``
+  (off by default) passes one as if it had been kept, without changing what the model computes.
 - Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
   attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
   with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real
