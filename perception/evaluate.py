@@ -267,7 +267,8 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
 def _modality_weights(alphas: np.ndarray, features: Sequence[Mapping[str, Any]]) -> dict[str, list[float]]:
     """Per modality (:data:`MODALITIES` order): the mean weight alpha over the strokes where it is present, and
     the share of those strokes on which the gate dropped it (alpha 0)."""
-    present = np.array([[f.get(m) is not None for m in MODALITIES] for f in features], dtype=bool).reshape(-1, 4)
+    present = np.array([[f.get(m) is not None for m in MODALITIES] for f in features], dtype=bool)
+    present = present.reshape(-1, len(MODALITIES))  # (N, M), also for N = 0
     n = np.maximum(present.sum(axis=0), 1)
     return {"alpha_mean": ((alphas * present).sum(axis=0) / n).round(4).tolist(),
             "gate_dropped_share": (((alphas == 0) & present).sum(axis=0) / n).round(4).tolist()}
