@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from perception.features import FeatureBatch
 from perception.streams import MODALITIES
 from perception.touchformer import (ModelOutput, TouchFormer, TouchFormerConfig, TouchFormerFusionConfig,
-                                    TouchFormerMagConfig, uniform_weights)
+                                    TouchFormerMagConfig, TouchFormerSoftGateConfig, uniform_weights)
 
 N_MOD = len(MODALITIES)
 
@@ -211,6 +211,7 @@ MODEL_REGISTRY: dict[str, tuple[type, type[nn.Module]]] = {
     "touchformer": (TouchFormerConfig, TouchFormer),  # MAG + fusion, trained with CER
     "touchformer_mag": (TouchFormerMagConfig, TouchFormer),  # ablation: MAG + fusion, no CER
     "touchformer_fusion": (TouchFormerFusionConfig, TouchFormer),  # ablation: fusion only
+    "touchformer_soft": (TouchFormerSoftGateConfig, TouchFormer),  # variant: MAG weights, no threshold, CER
     "lstm": (LSTMConfig, LSTMClassifier),
     "mtcnn": (MTCNNConfig, MTCNNClassifier),
 }

@@ -210,7 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--data", required=True)
     train.add_argument("--task", choices=["ssmc", "usmc", "fine"], default="ssmc")
     train.add_argument("--model", default="touchformer",
-                       choices=["touchformer", "touchformer_mag", "touchformer_fusion", "lstm", "mtcnn"])
+                       choices=["touchformer", "touchformer_mag", "touchformer_fusion", "touchformer_soft", "lstm",
+                                "mtcnn"])
     train.add_argument("--out", required=True)
     train.add_argument("--epochs", type=int, default=50)
     train.add_argument("--batch-size", type=int, default=32)

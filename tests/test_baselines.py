@@ -18,6 +18,7 @@ TINY = {
     "touchformer": dict(d_model=16, n_heads=2, n_layers=1, gate_hidden=8, emb_dim=8),
     "touchformer_mag": dict(d_model=16, n_heads=2, n_layers=1, gate_hidden=8, emb_dim=8),
     "touchformer_fusion": dict(d_model=16, n_heads=2, n_layers=1, gate_hidden=8, emb_dim=8),
+    "touchformer_soft": dict(d_model=16, n_heads=2, n_layers=1, gate_hidden=8, emb_dim=8),
     "lstm": dict(n_steps=12, hidden=16, emb_dim=8),
     "mtcnn": dict(channels=12, dilations=(1, 2), emb_dim=8),
 }
@@ -32,13 +33,16 @@ def _pad(batch: FeatureBatch, extra: int) -> FeatureBatch:
 
 
 def test_registry_lists_every_model_explicitly():
-    assert set(MODEL_REGISTRY) == {"touchformer", "touchformer_fusion", "touchformer_mag", "lstm", "mtcnn"}
+    assert set(MODEL_REGISTRY) == {"touchformer", "touchformer_fusion", "touchformer_mag", "touchformer_soft",
+                                   "lstm", "mtcnn"}
     assert MODEL_REGISTRY["lstm"] == (LSTMConfig, LSTMClassifier)
     assert MODEL_REGISTRY["mtcnn"] == (MTCNNConfig, MTCNNClassifier)
     full, _ = build_model("touchformer", IN_DIMS, 3)
     mag, _ = build_model("touchformer_mag", IN_DIMS, 3)
     fusion, _ = build_model("touchformer_fusion", IN_DIMS, 3)
-    assert full.use_mag and full.cer_lambda > 0
+    soft, _ = build_model("touchformer_soft", IN_DIMS, 3)
+    assert full.use_mag and full.cer_lambda > 0 and full.gate_th > 0
+    assert soft.use_mag and soft.cer_lambda == full.cer_lambda and soft.gate_th == 0.0
     assert mag.use_mag and mag.cer_lambda == 0
     assert not fusion.use_mag and fusion.cer_lambda == 0
     assert isinstance(full, TouchFormerConfig)

@@ -48,19 +48,21 @@ def test_quick_evaluation_writes_report(tmp_path):
             assert 0.0 <= acc["mean"] <= 1.0
         assert len(saved["table1"][task]["touchformer"]["runs"]) == (2 if task == "usmc" else 1)
     assert set(saved["missing_modality"]["touchformer"]) == {"sound", "normal", "friction", "accel", "none"}
-    assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer"}
+    assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer", "touchformer_soft"}
     weights = saved["modality_weights"]["usmc"]
     assert weights["touchformer_fusion"]["alpha_mean"] == pytest.approx([0.25] * 4, abs=1e-4)  # uniform
     assert weights["touchformer_fusion"]["gate_dropped_share"] == [0.0] * 4
-    for model in ("touchformer", "touchformer_mag"):
+    for model in ("touchformer", "touchformer_mag", "touchformer_soft"):
         assert sum(weights[model]["alpha_mean"]) == pytest.approx(1.0, abs=1e-3)  # every toy stroke has all four
         assert all(0.0 <= d <= 1.0 for d in weights[model]["gate_dropped_share"])
+    assert weights["touchformer_soft"]["gate_dropped_share"] == [0.0] * 4  # no threshold: nothing dropped
     fit = saved["fitting"]["ssmc"]["touchformer"]
     assert 1 <= fit["best_epoch"]["mean"] <= 2 and 0.0 <= fit["final_train_accuracy"]["mean"] <= 1.0
     run = saved["table1"]["ssmc"]["touchformer"]["runs"][0]
     assert len(run["val_accuracy_curve"]) == 2
     assert max(run["val_accuracy_curve"]) == pytest.approx(run["best_val_accuracy"], abs=1e-4)
-    assert set(saved["robustness"]["curves"]["touchformer"]) == {"0.0", "0.5", "1.0"}
+    for model in ("touchformer", "lstm", "mtcnn", "touchformer_soft"):
+        assert set(saved["robustness"]["curves"][model]) == {"0.0", "0.5", "1.0"}
     assert len(saved["fire"]["rows"]) == 5
     assert all(0.0 <= row["accuracy"] <= 1.0 for row in saved["fire"]["rows"])
     # the reference classifier is a sanity floor that the toy data lets it reach
