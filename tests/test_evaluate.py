@@ -43,7 +43,7 @@ def test_quick_evaluation_writes_report(tmp_path):
     assert saved["provenance"]["data_manifest_sha256"] == results["provenance"]["data_manifest_sha256"]
     assert saved["provenance"]["command"] == "robotdemo evaluate --quick"
     for task in ("ssmc", "usmc", "fine"):
-        for model in ("touchformer", "lstm", "mtcnn", "reference"):
+        for model in ("touchformer", "touchformer_soft", "lstm", "mtcnn", "reference"):
             acc = saved["table1"][task][model]["accuracy"]
             assert 0.0 <= acc["mean"] <= 1.0
         assert len(saved["table1"][task]["touchformer"]["runs"]) == (2 if task == "usmc" else 1)
@@ -70,6 +70,7 @@ def test_quick_evaluation_writes_report(tmp_path):
     report = (out / "REPORT.md").read_text()
     assert str(PAPER["table1"]["ssmc"]["touchformer"][0]) in report and "Deviations" in report
     assert "Which sensors the models trusted" in report
+    assert "| TouchFormer, MAG without threshold |" in report and "our variant, not the paper's" in report
     assert results["provenance"]["data_manifest_sha256"] in report
     # USMC test instances never appear in the training part of their fold
     for run in saved["table1"]["usmc"]["touchformer"]["runs"]:

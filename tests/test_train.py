@@ -263,3 +263,12 @@ def test_train_cli_model_option_errors_are_one_line(tmp_path, capsys):
         code = main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--model-option", bad])
         err = capsys.readouterr().err
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_train_cli_offers_every_registered_model():
+    from perception.baselines import MODEL_REGISTRY
+    from robotdemo.cli import build_parser
+
+    train_parser = build_parser()._subparsers._group_actions[0].choices["train"]
+    model_action = next(a for a in train_parser._actions if a.dest == "model")
+    assert set(model_action.choices) == set(MODEL_REGISTRY)
