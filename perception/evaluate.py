@@ -101,7 +101,7 @@ class EvalConfig:
         ablation: run the ``ablation_models`` too.
         ablation_models: the paper's ablation (fusion only, + MAG, + MAG + CER = TouchFormer) and our variant
             "MAG without threshold" (``touchformer_soft``: ``gate_th = 0``, CER on), which scored higher than
-            TouchFormer on validation on every split tried (SSMC seeds 0-2, USMC folds 0-4, fine-grained seed 0).
+            TouchFormer on validation on every split (SSMC seeds 0-2, USMC folds 0-4, fine-grained seeds 0-2).
         missing_modality: test the USMC models with each modality removed.
         robustness_models: models of the robustness curve (empty: skip it).
         corruption_ratios: p values of the robustness curve.
@@ -658,7 +658,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     rob_jobs = [(m, p) for p in cfg.corruption_ratios for m in cfg.robustness_models]
     s0 = cfg.seeds[0]
     rob_split = ssmc_split(records, s0) if rob_jobs else None  # the robustness curve's split (first seed)
-    if workers > 1:  # the targets first (Table 1, the Table-1 models' robustness curve), then the variants'
+    if workers > 1:  # targets first (Table 1 and its models' robustness), then the other variants
         pending = [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in jobs if m in cfg.models]
         rob_pending = [(m, "ssmc", f"seed{s0}", s0, rob_split[0], float(p)) for m, p in rob_jobs]
         pending += [job for job in rob_pending if job[0] in cfg.models]
