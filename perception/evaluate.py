@@ -106,6 +106,7 @@ class EvalConfig:
         robustness_models: models of the robustness curve (empty: skip it).
         corruption_ratios: p values of the robustness curve.
         corruption_std: corruption noise std, units of the per-channel training feature std.
+        fire_models: networks of the clean -> fire experiment (each: clean only, fine-tuned, fire only).
         fine_tune_epochs: epochs of clean -> fire fine-tuning.
         fine_tune_lr: fine-tuning learning rate.
         train: training settings shared by every run (model, task and seed are set per run); batches group
@@ -124,6 +125,7 @@ class EvalConfig:
     robustness_models: tuple[str, ...] = ("touchformer", "lstm", "mtcnn", "touchformer_soft")
     corruption_ratios: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(11))
     corruption_std: float = 1.0
+    fire_models: tuple[str, ...] = ("touchformer", "touchformer_soft")
     fine_tune_epochs: int = 20
     fine_tune_lr: float = 3e-4
     train: TrainConfig = field(default_factory=lambda: TrainConfig(group_by_length=True))
@@ -782,20 +784,22 @@ def _fire_experiment(ctx: _Context, fire_dir: Path, provenance: dict[str, Any]) 
                      "g_mean": g_mean(y, pred, range(len(names))),
                      "combustible_accuracy": float(np.mean(comb_true == comb_pred)), "n_test": int(len(fire_test))})
 
-    # trained on all clean strokes (validation carved from them), tested on the fire test part
-    clean = _run(ctx, "touchformer", "ssmc", all_clean, "all", s, run_name="fire/clean_touchformer", class_names=names)
-    score("TouchFormer, clean only (zero-shot on fire)", "touchformer", "fire/clean_touchformer", clean["checkpoint"])
+    for model in cfg.fire_models:
+        label = MODEL_LABEL.get(model, model)
+        # trained on all clean strokes (validation carved from them), tested on the fire test part
+        clean = _run(ctx, model, "ssmc", all_clean, "all", s, run_name=f"fire/clean_{model}", class_names=names)
+        score(f"{label}, clean only (zero-shot on fire)", model, f"fire/clean_{model}", clean["checkpoint"])
+        # fine-tuned from the clean checkpoint on the fire training part
+        tuned = _run(ctx, model, "ssmc", (fire_train, fire_test), "fire", s, run_name=f"fire/finetuned_{model}",
+                     train_changes={"init_checkpoint": clean["checkpoint"], "epochs": cfg.fine_tune_epochs,
+                                    "lr": cfg.fine_tune_lr}, **fire_kw)
+        score(f"{label}, clean + fine-tuned on fire", model, f"fire/finetuned_{model}", tuned["checkpoint"])
+        scratch = _run(ctx, model, "ssmc", (fire_train, fire_test), "fire", s, run_name=f"fire/scratch_{model}",
+                       **fire_kw)
+        score(f"{label}, fire only", model, f"fire/scratch_{model}", scratch["checkpoint"])
     ref = ReferenceClassifier(ReferenceConfig()).pipeline.fit(ctx.summaries, [r.category for r in clean_records])
     score("reference, clean only (zero-shot on fire)", "reference", "", None,
           np.array([names.index(str(p)) for p in ref.predict(fire_summ[fire_test])]))
-    # fine-tuned from the clean checkpoint on the fire training part
-    tuned = _run(ctx, "touchformer", "ssmc", (fire_train, fire_test), "fire", s, run_name="fire/finetuned_touchformer",
-                 train_changes={"init_checkpoint": clean["checkpoint"], "epochs": cfg.fine_tune_epochs,
-                                "lr": cfg.fine_tune_lr}, **fire_kw)
-    score("TouchFormer, clean + fine-tuned on fire", "touchformer", "fire/finetuned_touchformer", tuned["checkpoint"])
-    scratch = _run(ctx, "touchformer", "ssmc", (fire_train, fire_test), "fire", s, run_name="fire/scratch_touchformer",
-                   **fire_kw)
-    score("TouchFormer, fire only", "touchformer", "fire/scratch_touchformer", scratch["checkpoint"])
     ref_fire = _run(ctx, "reference", "ssmc", (fire_train, fire_test), "fire", s, run_name="fire/reference", **fire_kw)
     score("reference, fire only", "reference", "", None, ref_fire["_y_pred"])
     return {"split": f"ssmc seed{s}", "n_fire_train": int(len(fire_train)), "n_fire_test": int(len(fire_test)),

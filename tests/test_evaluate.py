@@ -63,7 +63,8 @@ def test_quick_evaluation_writes_report(tmp_path):
     assert max(run["val_accuracy_curve"]) == pytest.approx(run["best_val_accuracy"], abs=1e-4)
     for model in ("touchformer", "lstm", "mtcnn", "touchformer_soft"):
         assert set(saved["robustness"]["curves"][model]) == {"0.0", "0.5", "1.0"}
-    assert len(saved["fire"]["rows"]) == 5
+    assert len(saved["fire"]["rows"]) == 3 * 2 + 2  # three per network, two for the reference
+    assert {row["model"] for row in saved["fire"]["rows"]} == {"touchformer", "touchformer_soft", "reference"}
     assert all(0.0 <= row["accuracy"] <= 1.0 for row in saved["fire"]["rows"])
     # the reference classifier is a sanity floor that the toy data lets it reach
     assert saved["table1"]["ssmc"]["reference"]["accuracy"]["mean"] > 0.6
