@@ -44,8 +44,8 @@ from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ss
 from perception.features import feature_dims
 from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
 from perception.streams import MODALITIES, MODALITY_SYMBOL
-from perception.train import (DEVIATIONS, TrainConfig, TrainResult, featurize_records, predict, resolve_device,
-                             train)
+from perception.train import (CHECKPOINT_DIR, DEVIATIONS, TrainConfig, TrainResult, featurize_records, predict,
+                             resolve_device, train)
 
 PAPER: dict[str, Any] = {
     "table1": {  # accuracy %, G-mean; LMTHM, 4 modalities
@@ -172,6 +172,17 @@ def _mean_std(values: Sequence[float]) -> dict[str, float]:
 # runs
 
 
+@dataclass(frozen=True)
+class _FireData:
+    """The fire data set of the clean -> fire experiment, featurised once, with its SSMC split (first seed)."""
+
+    data: Dataset
+    features: list
+    summaries: np.ndarray
+    split: tuple[np.ndarray, np.ndarray]
+    class_names: tuple[str, ...]
+
+
 @dataclass
 class _Context:
     data: Dataset
@@ -182,6 +193,29 @@ class _Context:
     progress: bool
     provenance: dict[str, Any]
     cache: dict = field(default_factory=dict)
+    fire: _FireData | None = None
+
+
+@dataclass(frozen=True)
+class _TrainJob:
+    """One network run of an experiment cell, as :func:`_run` trains it: train on ``split[0]`` (validation carved
+    from it), test on ``split[1]``. ``source`` names the data set (``"clean"`` or ``"fire"``), so a forked
+    training worker finds the strokes in its copy of the context instead of receiving them pickled."""
+
+    model: str
+    task: str
+    split_name: str
+    seed: int
+    split: tuple[np.ndarray, np.ndarray]
+    corruption: float = 0.0
+    source: str = "clean"
+    run_name: str | None = None
+    class_names: tuple[str, ...] | None = None
+    train_changes: tuple[tuple[str, Any], ...] = ()
+
+    def run_dir(self, ctx: _Context) -> Path:
+        default = f"{self.task}/{self.model}/{self.split_name}_p{self.corruption:.1f}"
+        return ctx.out_dir / "runs" / (self.run_name or default)
 
 
 def _train_config(ctx: _Context, model: str, task: str, seed: int, **changes: Any) -> TrainConfig:
@@ -203,7 +237,8 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     tr, val = validation_split(records, train_idx, task, seed, ctx.config.train.val_fraction)
     cfg = _train_config(ctx, model, task, seed, corruption_ratio=corruption,
                         corruption_std=ctx.config.corruption_std, **dict(train_changes or {}))
-    run_dir = ctx.out_dir / "runs" / (run_name or f"{task}/{model}/{split_name}_p{corruption:.1f}")
+    run_dir = _TrainJob(model, task, split_name, seed, (train_idx, train_idx[:0]), corruption,
+                        run_name=run_name).run_dir(ctx)
     res = train([records[i] for i in tr], [records[i] for i in val], cfg, run_dir, progress=False,
                 class_names=class_names, features_train=[features[i] for i in tr],
                 features_val=[features[i] for i in val], provenance=ctx.provenance)
@@ -272,6 +307,22 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
     return result
 
 
+def _source(ctx: _Context, name: str) -> tuple[Sequence, list, np.ndarray]:
+    """The strokes, features and summaries of data set ``name`` (``"clean"`` or ``"fire"``)."""
+    if name == "clean":
+        return ctx.data.records, ctx.features, ctx.summaries
+    assert ctx.fire is not None, "fire runs need the fire data set loaded (_load_fire)"
+    return ctx.fire.data.records, ctx.fire.features, ctx.fire.summaries
+
+
+def _run_job(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
+    """:func:`_run` for one :class:`_TrainJob`."""
+    records, features, summaries = _source(ctx, job.source)
+    return _run(ctx, job.model, job.task, job.split, job.split_name, job.seed, job.corruption, records=records,
+                features=features, summaries=summaries, class_names=job.class_names, run_name=job.run_name,
+                train_changes=dict(job.train_changes) or None)
+
+
 def _modality_weights(alphas: np.ndarray, features: Sequence[Mapping[str, Any]]) -> dict[str, list[float]]:
     """Per modality (:data:`MODALITIES` order): the mean weight alpha over the strokes where it is present, and
     the share of those strokes on which the gate dropped it (alpha 0)."""
@@ -292,32 +343,36 @@ def _pool_init() -> None:
     torch.set_num_threads(1)
 
 
-def _pretrain_job(job: tuple[str, str, str, int, np.ndarray, float]) -> str:
-    model, task, split_name, seed, train_idx, corruption = job
+def _pretrain_job(job: _TrainJob) -> str:
     ctx = _POOL_CONTEXT
     assert ctx is not None, "_pretrain_job runs only in a worker forked by _pretrain"
-    names = _class_names(ctx.data.records, task)
-    _train_run(ctx, model, task, train_idx, split_name, seed, corruption, ctx.data.records, ctx.features, names,
-               None, None)
-    return f"{task} {model} {split_name} p={corruption}"
+    records, features, _ = _source(ctx, job.source)
+    names = job.class_names or _class_names(records, job.task)
+    _train_run(ctx, job.model, job.task, job.split[0], job.split_name, job.seed, job.corruption, records, features,
+               names, job.run_name, dict(job.train_changes) or None)
+    return job.run_name or f"{job.task} {job.model} {job.split_name} p={job.corruption}"
 
 
-def _pretrain(ctx: _Context, jobs: Sequence[tuple[str, str, str, int, np.ndarray, float]], workers: int) -> None:
-    """Train the runs of ``jobs`` (model, task, split name, seed, training indices, corruption ratio) in
-    ``workers`` forked processes of one torch thread each. The experiments then run as without workers and find
-    every run finished in its folder (:func:`perception.train.train` reuses it), so the results are those of a
+def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
+    """Train the runs of ``jobs`` in ``workers`` forked processes of one torch thread each (one job per run
+    folder, at its first place in ``jobs``). The experiments then run as without workers and find every run
+    finished in its folder (:func:`perception.train.train` reuses it), so the results are those of a
     sequential evaluation. One torch thread per process, so ``workers`` processes share as many cores without
     oversubscribing them."""
     import multiprocessing as mp
 
     global _POOL_CONTEXT
-    if not jobs:
+    unique: dict[Path, _TrainJob] = {}
+    for job in jobs:
+        if job.model != "reference":
+            unique.setdefault(job.run_dir(ctx), job)
+    if not unique:
         return
     _POOL_CONTEXT = ctx
-    bar = tqdm(total=len(jobs), desc=f"train ({workers} workers)", disable=not ctx.progress)
+    bar = tqdm(total=len(unique), desc=f"train ({workers} workers)", disable=not ctx.progress)
     try:
         with mp.get_context("fork").Pool(workers, initializer=_pool_init) as pool:
-            for name in pool.imap_unordered(_pretrain_job, jobs):
+            for name in pool.imap_unordered(_pretrain_job, list(unique.values())):
                 bar.set_postfix_str(name)
                 bar.update()
     finally:
@@ -660,17 +715,17 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     rob_jobs = [(m, p) for p in cfg.corruption_ratios for m in cfg.robustness_models]
     s0 = cfg.seeds[0]
     rob_split = ssmc_split(records, s0) if rob_jobs else None  # the robustness curve's split (first seed)
-    if workers > 1:  # targets first (Table 1 and its models' robustness), then the other variants
-        pending = [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in jobs if m in cfg.models]
-        rob_pending = [(m, "ssmc", f"seed{s0}", s0, rob_split[0], float(p)) for m, p in rob_jobs]
-        pending += [job for job in rob_pending if job[0] in cfg.models]
-        pending += [(m, t, name, seed, split[0], 0.0) for m, t, name, seed, split in jobs if m not in cfg.models]
-        pending += [job for job in rob_pending if job[0] not in cfg.models]
-        pending = [job for job in pending if job[0] != "reference"]
-        unique: dict[tuple, tuple] = {}
-        for job in pending:  # one job per run folder, at its first place
-            unique.setdefault((job[0], job[1], job[2], job[5]), job)
-        _pretrain(ctx, list(unique.values()), workers)
+    if fire_dir is not None:
+        ctx.fire = _load_fire(ctx, Path(fire_dir))
+        provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=ctx.fire.data.manifest_sha256)
+    if workers > 1:  # targets first (Table 1 and its models' robustness), then the other variants, then fire
+        table = [_TrainJob(m, t, name, seed, split) for m, t, name, seed, split in jobs]
+        rob = [_TrainJob(m, "ssmc", f"seed{s0}", s0, rob_split, float(p)) for m, p in rob_jobs]
+        fire_runs = [_fire_runs(ctx, m) for m in cfg.fire_models] if ctx.fire is not None else []
+        _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
+                  + [j for j in table + rob if j.model not in cfg.models]
+                  + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers)
+        _pretrain(ctx, [r["finetuned"] for r in fire_runs], workers)  # these start from the clean checkpoints
     bar = tqdm(total=len(jobs) + len(rob_jobs), desc="evaluate", disable=not progress)
 
     per: dict[tuple[str, str], list] = {}
@@ -737,8 +792,8 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         figures.append("robustness.png")
     bar.close()
 
-    if fire_dir is not None:
-        results["fire"] = _fire_experiment(ctx, Path(fire_dir), provenance)
+    if ctx.fire is not None:
+        results["fire"] = _fire_experiment(ctx)
     results["figures"] = figures
     results["seconds"] = time.perf_counter() - t_start
     (out_dir / "results.json").write_text(json.dumps(results, indent=2, default=_json_default), encoding="utf-8")
@@ -754,29 +809,48 @@ def _json_default(value: Any) -> Any:
     return str(value)
 
 
-def _fire_experiment(ctx: _Context, fire_dir: Path, provenance: dict[str, Any]) -> dict[str, Any]:
-    cfg = ctx.config
+def _load_fire(ctx: _Context, fire_dir: Path) -> _FireData:
+    """Load and featurise the fire data set; its categories must occur in the clean data."""
     fire = load_dataset(fire_dir)
-    provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=fire.manifest_sha256)
-    clean_records = ctx.data.records
-    names = tuple(sorted({r.category for r in clean_records}))
+    names = tuple(sorted({r.category for r in ctx.data.records}))
     unknown = sorted({r.category for r in fire.records} - set(names))
     if unknown:
         raise ValueError(f"{fire_dir}: fire categories {unknown} do not occur in the clean data")
-    combustible = {r.category: r.combustible for r in clean_records}
-    fire_feats = featurize_records(fire.records, cfg.train.feature_config, ctx.progress, "featurize fire")
-    fire_summ = np.stack([summary_features(r) for r in fire.records])
-    s = cfg.seeds[0]
-    fire_train, fire_test = ssmc_split(fire.records, s)
-    all_clean = (np.arange(len(clean_records)), np.zeros(0, dtype=np.int64))
-    fire_kw = dict(records=fire.records, features=fire_feats, summaries=fire_summ, class_names=names)
+    features = featurize_records(fire.records, ctx.config.train.feature_config, ctx.progress, "featurize fire")
+    summaries = np.stack([summary_features(r) for r in fire.records])
+    return _FireData(data=fire, features=features, summaries=summaries,
+                     split=ssmc_split(fire.records, ctx.config.seeds[0]), class_names=names)
+
+
+def _fire_runs(ctx: _Context, model: str) -> dict[str, _TrainJob]:
+    """The three runs of ``model`` in the clean -> fire experiment: ``clean`` (all clean strokes, validation
+    carved from them), ``finetuned`` (from the clean checkpoint, on the fire training part) and ``scratch``
+    (fire training part only)."""
+    assert ctx.fire is not None
+    cfg, fire, s = ctx.config, ctx.fire, ctx.config.seeds[0]
+    clean = _TrainJob(model, "ssmc", "all", s, (np.arange(len(ctx.data.records)), np.zeros(0, dtype=np.int64)),
+                      run_name=f"fire/clean_{model}", class_names=fire.class_names)
+    on_fire = dict(source="fire", class_names=fire.class_names)
+    tune = (("init_checkpoint", str(clean.run_dir(ctx) / CHECKPOINT_DIR)), ("epochs", cfg.fine_tune_epochs),
+            ("lr", cfg.fine_tune_lr))
+    return {"clean": clean,
+            "finetuned": _TrainJob(model, "ssmc", "fire", s, fire.split, run_name=f"fire/finetuned_{model}",
+                                   train_changes=tune, **on_fire),
+            "scratch": _TrainJob(model, "ssmc", "fire", s, fire.split, run_name=f"fire/scratch_{model}", **on_fire)}
+
+
+def _fire_experiment(ctx: _Context) -> dict[str, Any]:
+    assert ctx.fire is not None
+    cfg, fire = ctx.config, ctx.fire
+    names, (fire_train, fire_test) = fire.class_names, fire.split
+    combustible = {r.category: r.combustible for r in ctx.data.records}
+    y = np.array([names.index(fire.data.records[i].category) for i in fire_test])
     rows = []
 
     def score(label: str, model: str, run_name: str, ckpt_dir: str | None, pred: np.ndarray | None = None) -> None:
-        y = np.array([names.index(fire.records[i].category) for i in fire_test])
         if pred is None:
             ckpt = load_checkpoint(ckpt_dir, device=resolve_device(cfg.train.device))
-            pred = predict(ckpt.model, [fire_feats[i] for i in fire_test], feature_dims(ckpt.feature_config),
+            pred = predict(ckpt.model, [fire.features[i] for i in fire_test], feature_dims(ckpt.feature_config),
                            stats=ckpt.norm_stats, device=resolve_device(cfg.train.device)).pred
         comb_true = np.array([combustible[names[k]] for k in y])
         comb_pred = np.array([combustible[names[k]] for k in pred])
@@ -786,24 +860,18 @@ def _fire_experiment(ctx: _Context, fire_dir: Path, provenance: dict[str, Any]) 
 
     for model in cfg.fire_models:
         label = MODEL_LABEL.get(model, model)
-        # trained on all clean strokes (validation carved from them), tested on the fire test part
-        clean = _run(ctx, model, "ssmc", all_clean, "all", s, run_name=f"fire/clean_{model}", class_names=names)
-        score(f"{label}, clean only (zero-shot on fire)", model, f"fire/clean_{model}", clean["checkpoint"])
-        # fine-tuned from the clean checkpoint on the fire training part
-        tuned = _run(ctx, model, "ssmc", (fire_train, fire_test), "fire", s, run_name=f"fire/finetuned_{model}",
-                     train_changes={"init_checkpoint": clean["checkpoint"], "epochs": cfg.fine_tune_epochs,
-                                    "lr": cfg.fine_tune_lr}, **fire_kw)
-        score(f"{label}, clean + fine-tuned on fire", model, f"fire/finetuned_{model}", tuned["checkpoint"])
-        scratch = _run(ctx, model, "ssmc", (fire_train, fire_test), "fire", s, run_name=f"fire/scratch_{model}",
-                       **fire_kw)
-        score(f"{label}, fire only", model, f"fire/scratch_{model}", scratch["checkpoint"])
-    ref = ReferenceClassifier(ReferenceConfig()).pipeline.fit(ctx.summaries, [r.category for r in clean_records])
+        for kind, title in (("clean", "clean only (zero-shot on fire)"), ("finetuned", "clean + fine-tuned on fire"),
+                            ("scratch", "fire only")):
+            job = _fire_runs(ctx, model)[kind]
+            score(f"{label}, {title}", model, job.run_name, _run_job(ctx, job)["checkpoint"])
+    ref = ReferenceClassifier(ReferenceConfig()).pipeline.fit(ctx.summaries, [r.category for r in ctx.data.records])
     score("reference, clean only (zero-shot on fire)", "reference", "", None,
-          np.array([names.index(str(p)) for p in ref.predict(fire_summ[fire_test])]))
-    ref_fire = _run(ctx, "reference", "ssmc", (fire_train, fire_test), "fire", s, run_name="fire/reference", **fire_kw)
+          np.array([names.index(str(p)) for p in ref.predict(fire.summaries[fire_test])]))
+    ref_fire = _run_job(ctx, _TrainJob("reference", "ssmc", "fire", cfg.seeds[0], fire.split,
+                                       run_name="fire/reference", source="fire", class_names=names))
     score("reference, fire only", "reference", "", None, ref_fire["_y_pred"])
-    return {"split": f"ssmc seed{s}", "n_fire_train": int(len(fire_train)), "n_fire_test": int(len(fire_test)),
-            "rows": rows}
+    return {"split": f"ssmc seed{cfg.seeds[0]}", "n_fire_train": int(len(fire_train)),
+            "n_fire_test": int(len(fire_test)), "rows": rows}
 
 
 def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,

@@ -79,24 +79,47 @@ def test_quick_evaluation_writes_report(tmp_path):
     assert np.isfinite(saved["seconds"])
 
 
-def test_parallel_training_gives_the_sequential_results(tmp_path):
+def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
+    import perception.evaluate as evaluation
+
     torch.set_num_threads(1)
     clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
+    fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
+                                 env="fire")
     write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
+    write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
     config = dataclasses.replace(quick_config(), models=("touchformer", "lstm", "reference"), ablation=False,
-                                 robustness_models=("lstm",), corruption_ratios=(0.0, 1.0), tsne=False)
+                                 robustness_models=("lstm",), corruption_ratios=(0.0, 1.0), tsne=False,
+                                 fire_models=("lstm",))
+    pretrained: list[str] = []
+    pretrain = evaluation._pretrain
+
+    def spy(ctx, jobs, workers):
+        pretrained.extend(str(job.run_dir(ctx).relative_to(ctx.out_dir / "runs")) for job in jobs)
+        return pretrain(ctx, jobs, workers)
+
+    monkeypatch.setattr(evaluation, "_pretrain", spy)
     runs = {}
     for workers in (1, 2):
         out = tmp_path / f"w{workers}"
-        runs[workers] = evaluate(tmp_path / "clean", out, config=config, progress=False, workers=workers)
+        runs[workers] = evaluate(tmp_path / "clean", out, config=config, progress=False, workers=workers,
+                                 fire_dir=tmp_path / "fire")
         assert (out / "REPORT.md").is_file()
     for task in ("ssmc", "usmc", "fine"):
         for model in ("touchformer", "lstm", "reference"):
             assert (runs[1]["table1"][task][model]["accuracy"] == runs[2]["table1"][task][model]["accuracy"]), \
                 (task, model)
     assert runs[1]["robustness"]["curves"] == runs[2]["robustness"]["curves"]
+    # the workers trained the fire runs too, fine-tuning after the clean run it starts from
+    fire_runs = [name for name in pretrained if name.startswith("fire/")]
+    assert set(fire_runs) == {"fire/clean_lstm", "fire/scratch_lstm", "fire/finetuned_lstm"}
+    assert fire_runs[-1] == "fire/finetuned_lstm"
+    assert runs[1]["fire"]["rows"] == runs[2]["fire"]["rows"] and len(runs[2]["fire"]["rows"]) == 3 + 2
     report = (tmp_path / "w2" / "REPORT.md").read_text()
-    assert "Not run in this report (`--no-ablation`)" in report and "no `--fire` data set given" in report
+    assert "Not run in this report (`--no-ablation`)" in report
+    no_fire = dataclasses.replace(config, models=("reference",), robustness_models=())
+    evaluate(tmp_path / "clean", tmp_path / "nofire", config=no_fire, progress=False)
+    assert "no `--fire` data set given" in (tmp_path / "nofire" / "REPORT.md").read_text()
 
 
 def test_inference_benchmark_reports_latency(tmp_path):
