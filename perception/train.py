@@ -96,6 +96,9 @@ class TrainConfig:
             :func:`predict`).
         corruption_std: corruption noise std in units of the per-channel training feature std.
         val_fraction: validation share of the training part (used by :func:`train_command`).
+        train_fraction: share of the training part (after validation is carved from it) that is trained on,
+            stratified by the task's label and seeded by ``seed`` (:func:`task_split`); validation and test stay
+            the same, so runs at several fractions draw a learning curve. 1 trains on all of it.
         split_by_object: SSMC and fine-grained: keep all strokes of one physical object on one side of the
             test split and of the validation split (stricter than the paper's split by stroke; what a robot
             meeting new objects needs to be selected on). USMC always holds out whole instances.
@@ -127,6 +130,7 @@ class TrainConfig:
     corruption_ratio: float = 0.0
     corruption_std: float = 1.0
     val_fraction: float = 0.15
+    train_fraction: float = 1.0
     split_by_object: bool = False
     num_threads: int = 0
     group_by_length: bool = False
@@ -154,6 +158,8 @@ class TrainConfig:
             raise ValueError(f"modality_dropout must lie in [0, 1), got {self.modality_dropout}")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
+        if not 0.0 < self.train_fraction <= 1.0:
+            raise ValueError(f"train_fraction must lie in (0, 1], got {self.train_fraction}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON data (tuples become lists)."""
@@ -566,7 +572,22 @@ def task_split(records: Sequence[StrokeRecord], config: TrainConfig, fold: int =
         train_idx, test_idx = folds[fold]
     train_idx, val_idx = validation_split(records, train_idx, config.task, config.seed, config.val_fraction,
                                           group_by_object=by_object or None)
+    if config.train_fraction < 1.0:
+        train_idx = _subsample(records, train_idx, config)
     return train_idx, val_idx, test_idx
+
+
+def _subsample(records: Sequence[StrokeRecord], train_idx: np.ndarray, config: TrainConfig) -> np.ndarray:
+    """``config.train_fraction`` of ``train_idx``, stratified by the task's label, seeded (sorted indices)."""
+    from sklearn.model_selection import train_test_split
+
+    labels = labels_of([records[i] for i in train_idx], config.task)
+    try:
+        kept, _ = train_test_split(train_idx, train_size=config.train_fraction, stratify=labels,
+                                   random_state=config.seed)
+    except ValueError as exc:  # too few strokes to keep every label
+        raise TrainError(f"train_fraction {config.train_fraction} of {len(train_idx)} training strokes: {exc}")
+    return np.sort(kept)
 
 
 def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, config: TrainConfig, fold: int = 0,

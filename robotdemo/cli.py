@@ -74,7 +74,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          feature_noise_std=(defaults.feature_noise_std if args.feature_noise is None
                                             else args.feature_noise),
                          split_by_object=args.split_by_object, group_by_length=args.group_by_length,
-                         modality_dropout=args.modality_dropout, model_overrides=overrides)
+                         modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
+                         model_overrides=overrides)
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
     print(json.dumps(metrics, indent=2, default=str))
@@ -228,6 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="batches of strokes of similar length (less padding, faster epochs)")
     train.add_argument("--modality-dropout", type=float, default=0.0,
                        help="training: probability of removing each modality of a stroke (default 0)")
+    train.add_argument("--train-fraction", type=float, default=1.0,
+                       help="train on this share of the training part, stratified (learning curves; default 1)")
     train.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
                        help="a field of the model's config, e.g. d_model=32 (repeatable)")
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")

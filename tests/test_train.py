@@ -232,6 +232,23 @@ def test_split_by_object_keeps_objects_on_one_side(task):
     assert objects(train_s) & objects(test_s)
 
 
+@pytest.mark.parametrize("task", ["ssmc", "usmc"])
+def test_train_fraction_keeps_a_stratified_share_and_the_same_validation_and_test(task):
+    recs = make_material_strokes(5, n_categories=3, n_instances=5, n_objects=2, n_strokes=4, duration_s=0.02)
+    full_tr, full_val, full_test = task_split(recs, TrainConfig(task=task))
+    tr, val, test = task_split(recs, TrainConfig(task=task, train_fraction=0.5))
+    assert np.array_equal(val, full_val) and np.array_equal(test, full_test)
+    assert set(tr) < set(full_tr) and len(tr) == pytest.approx(0.5 * len(full_tr), abs=1)
+    counts = lambda idx: np.unique(labels_of([recs[i] for i in idx], task), return_counts=True)  # noqa: E731
+    (names_full, n_full), (names_half, n_half) = counts(full_tr), counts(tr)
+    assert list(names_half) == list(names_full) and np.all(np.abs(n_half - n_full / 2) <= 1)
+    assert np.array_equal(task_split(recs, TrainConfig(task=task, train_fraction=0.5))[0], tr)  # seeded
+    with pytest.raises(ValueError, match="train_fraction"):
+        TrainConfig(train_fraction=0.0)
+    with pytest.raises(TrainError, match="train_fraction 0.01"):
+        task_split(recs, TrainConfig(task=task, train_fraction=0.01))
+
+
 def test_classifier_bench_scores_the_checkpoints_own_test_part(tmp_path):
     from robotdemo.benchmarks.classifier_bench import run_classifier_benchmark
     from robotdemo.errors import RobotDemoError
