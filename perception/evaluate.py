@@ -214,8 +214,12 @@ class _TrainJob:
     train_changes: tuple[tuple[str, Any], ...] = ()
 
     def run_dir(self, ctx: _Context) -> Path:
-        default = f"{self.task}/{self.model}/{self.split_name}_p{self.corruption:.1f}"
-        return ctx.out_dir / "runs" / (self.run_name or default)
+        return _run_dir(ctx, self.model, self.task, self.split_name, self.corruption, self.run_name)
+
+
+def _run_dir(ctx: _Context, model: str, task: str, split_name: str, corruption: float, run_name: str | None) -> Path:
+    """The folder of one run: ``run_name``, or task/model/split_p<corruption> under ``out_dir/runs``."""
+    return ctx.out_dir / "runs" / (run_name or f"{task}/{model}/{split_name}_p{corruption:.1f}")
 
 
 def _train_config(ctx: _Context, model: str, task: str, seed: int, **changes: Any) -> TrainConfig:
@@ -237,8 +241,7 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     tr, val = validation_split(records, train_idx, task, seed, ctx.config.train.val_fraction)
     cfg = _train_config(ctx, model, task, seed, corruption_ratio=corruption,
                         corruption_std=ctx.config.corruption_std, **dict(train_changes or {}))
-    run_dir = _TrainJob(model, task, split_name, seed, (train_idx, train_idx[:0]), corruption,
-                        run_name=run_name).run_dir(ctx)
+    run_dir = _run_dir(ctx, model, task, split_name, corruption, run_name)
     res = train([records[i] for i in tr], [records[i] for i in val], cfg, run_dir, progress=False,
                 class_names=class_names, features_train=[features[i] for i in tr],
                 features_val=[features[i] for i in val], provenance=ctx.provenance)
