@@ -19,6 +19,7 @@ Training settings versus the paper are listed, with the measurements behind them
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -353,6 +354,25 @@ def cosine_lr(base_lr: float, step: int, total_steps: int) -> float:
 # resume state
 
 
+def strokes_fingerprint(records: Sequence[StrokeRecord]) -> str:
+    """sha256 of the strokes' labels and metadata and of a strided sample of every stream (shape, rate, clock
+    offset and about 64 samples each): cheap, and it tells apart two data sets of the same size, so a run folder
+    is never reused for other strokes."""
+    digest = hashlib.sha256()
+    for record in records:
+        digest.update(json.dumps([record.category, record.instance, bool(record.combustible), record.meta],
+                                 sort_keys=True, default=str).encode())
+        for key in MODALITIES:
+            stream = record.streams.get(key)
+            if stream is None:
+                digest.update(f"{key}:missing".encode())
+                continue
+            digest.update(f"{key}:{stream.data.shape}:{stream.rate_hz!r}:{stream.t0_s!r}".encode())
+            step = max(1, len(stream.data) // 64)
+            digest.update(np.ascontiguousarray(stream.data[::step], dtype=np.float32).tobytes())
+    return digest.hexdigest()
+
+
 def _save_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, record: dict[str, Any]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
@@ -423,7 +443,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         The :class:`TrainResult`.
 
     Raises:
-        TrainError: unknown validation labels, resume state from another config, CUDA missing.
+        TrainError: unknown validation labels, resume state from another config or other strokes, CUDA missing.
     """
     out_dir = Path(out_dir)
     if config.num_threads > 0:
@@ -470,7 +490,8 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     steps_per_epoch = max(1, math.ceil(n / config.batch_size))
     lengths = np.array([sum(0 if f.get(m) is None else len(f[m]) for m in MODALITIES) for f in norm_train])
     total_steps = config.epochs * steps_per_epoch
-    identity = {"config": config.to_dict(), "class_names": list(names), "n_train": n, "n_val": len(norm_val)}
+    identity = {"config": config.to_dict(), "class_names": list(names), "n_train": n, "n_val": len(norm_val),
+                "data_sha256": f"{strokes_fingerprint(records_train)}:{strokes_fingerprint(records_val)}"}
 
     resume_dir = out_dir / RESUME_DIR
     record = _load_resume(resume_dir, model, optimizer, device)
@@ -479,9 +500,11 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             record = {**record, "config": TrainConfig.from_dict(record["config"]).to_dict()}
         except (TypeError, ValueError, KeyError):
             pass  # not a config of this version: the identity check below says so
-    if record is not None and {k: record.get(k) for k in identity} != identity:
-        raise TrainError(f"{resume_dir}: holds a run with another config, class list or data size; "
-                         f"use a fresh output folder")
+    if record is not None:  # a run saved before the data fingerprint existed is checked on the rest
+        checked = {k: v for k, v in identity.items() if k in record or k != "data_sha256"}
+        if {k: record.get(k) for k in checked} != checked:
+            raise TrainError(f"{resume_dir}: holds a run with another config, class list or data; "
+                             f"use a fresh output folder")
     start_epoch = 0 if record is None else int(record["epoch"])
     history: list[dict[str, float]] = [] if record is None else list(record["history"])
     best_epoch = 0 if record is None else int(record["best_epoch"])

@@ -15,7 +15,8 @@ from perception.dataset import labels_of, ssmc_split, validation_split, write_da
 from perception.features import collate, feature_dims, featurize
 from perception.baselines import build_model
 from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, drop_modalities, featurize_records,
-                              length_grouped_batches, predict, task_split, train, train_command)
+                              length_grouped_batches, predict, strokes_fingerprint, task_split, train,
+                              train_command)
 from tests.test_dataset import make_material_strokes
 
 TINY = {
@@ -189,9 +190,27 @@ def test_resume_state_from_before_a_config_field_existed_is_resumed(toy, tmp_pat
     state = tmp_path / "run" / "resume" / "state.json"
     record = json.loads(state.read_text())
     del record["config"]["modality_dropout"]  # as written before the field was added
+    del record["data_sha256"]  # as written before runs fingerprinted their strokes
     state.write_text(json.dumps(record))
     again = _fit(toy, config, tmp_path / "run")
     assert again.resumed_from_epoch == 2 and again.best_epoch == full.best_epoch
+
+
+def test_run_folder_is_not_reused_for_other_strokes_of_the_same_count(toy, tmp_path):
+    config = _config(epochs=1)
+    _fit(toy, config, tmp_path / "run")
+    other = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=2, n_strokes=4, duration_s=0.3)
+    assert len(other) == len(toy["recs"])
+    pick = lambda idx: [other[i] for i in idx]  # noqa: E731
+    with pytest.raises(TrainError, match="another config, class list or data"):
+        train(pick(toy["tr"]), pick(toy["val"]), config, tmp_path / "run", progress=False)
+    # the fingerprint follows the samples, not only the labels
+    changed = [dataclasses.replace(r) for r in toy["pick"](toy["tr"])]
+    stream = changed[0].streams["normal"]
+    changed[0] = dataclasses.replace(changed[0], streams={**changed[0].streams, "normal": dataclasses.replace(
+        stream, data=stream.data + 1.0)})
+    assert strokes_fingerprint(changed) != strokes_fingerprint(toy["pick"](toy["tr"]))
+    assert strokes_fingerprint(toy["pick"](toy["tr"])) == strokes_fingerprint(toy["pick"](toy["tr"]))
 
 
 def test_unknown_model_option_names_the_field():
