@@ -356,8 +356,8 @@ def cosine_lr(base_lr: float, step: int, total_steps: int) -> float:
 
 def strokes_fingerprint(records: Sequence[StrokeRecord]) -> str:
     """sha256 of the strokes' labels and metadata and of a strided sample of every stream (shape, rate, clock
-    offset and about 64 samples each): cheap, and it tells apart two data sets of the same size, so a run folder
-    is never reused for other strokes."""
+    offset and about 64 samples each). Cheap, and it tells apart two data sets of the same size, so a run folder
+    is not reused for other strokes; a change that falls between the sampled points goes unnoticed."""
     digest = hashlib.sha256()
     for record in records:
         digest.update(json.dumps([record.category, record.instance, bool(record.combustible), record.meta],
@@ -431,7 +431,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             epoch is kept).
         config: the run's settings.
         out_dir: run folder: ``checkpoint/`` (best epoch), ``resume/`` (last epoch), ``train_result.json``.
-            A folder holding an unfinished run with the same config is resumed.
+            A folder holding an unfinished run with the same config and strokes is resumed.
         progress: tqdm bars.
         class_names: label order (default: sorted labels of the training strokes). Fine-tuning keeps the
             init checkpoint's.
