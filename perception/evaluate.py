@@ -862,10 +862,10 @@ def _fire_experiment(ctx: _Context) -> dict[str, Any]:
                      "combustible_accuracy": float(np.mean(comb_true == comb_pred)), "n_test": int(len(fire_test))})
 
     for model in cfg.fire_models:
-        label = MODEL_LABEL.get(model, model)
+        label, runs = MODEL_LABEL.get(model, model), _fire_runs(ctx, model)
         for kind, title in (("clean", "clean only (zero-shot on fire)"), ("finetuned", "clean + fine-tuned on fire"),
                             ("scratch", "fire only")):
-            job = _fire_runs(ctx, model)[kind]
+            job = runs[kind]
             score(f"{label}, {title}", model, job.run_name, _run_job(ctx, job)["checkpoint"])
     ref = ReferenceClassifier(ReferenceConfig()).pipeline.fit(ctx.summaries, [r.category for r in ctx.data.records])
     score("reference, clean only (zero-shot on fire)", "reference", "", None,
