@@ -86,7 +86,14 @@ class TaxelConfig:
 
 @dataclass(frozen=True)
 class FeatureConfig:
-    """Front-end settings for the four modalities (saved with every checkpoint)."""
+    """Front-end settings for the four modalities (saved with every checkpoint).
+
+    Attributes:
+        sound, normal, friction, accel: each modality's front end.
+        modalities: the sensors a model is trained on and fed (:data:`MODALITIES` order). Any other stream is
+            treated as missing, in training and at inference alike, since the checkpoint carries this config: a
+            model for a robot without a microphone, or one sensor on its own to see what it carries.
+    """
 
     sound: SpectralConfig = field(default_factory=lambda: SpectralConfig(
         window_s=0.09288, hop_s=0.04644, n_bands=40, fmin_hz=50.0, fmax_hz=16_000.0, mel=True, n_coeffs=24))
@@ -94,6 +101,14 @@ class FeatureConfig:
     friction: TaxelConfig = field(default_factory=TaxelConfig)
     accel: SpectralConfig = field(default_factory=lambda: SpectralConfig(
         window_s=0.256, hop_s=0.128, n_bands=16, fmin_hz=2.0, fmax_hz=250.0, mel=False, n_coeffs=0))
+    modalities: tuple[str, ...] = MODALITIES
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.modalities) - set(MODALITIES))
+        if unknown or not self.modalities or len(set(self.modalities)) != len(self.modalities):
+            raise ValueError(f"modalities must be distinct names among {MODALITIES}, at least one; "
+                             f"got {list(self.modalities)}")
+        object.__setattr__(self, "modalities", tuple(m for m in MODALITIES if m in self.modalities))
 
 
 def feature_dims(config: FeatureConfig) -> dict[str, int]:
@@ -210,18 +225,24 @@ def featurize(record: StrokeRecord, config: FeatureConfig) -> dict[str, np.ndarr
     """Feature sequences of one stroke.
 
     Returns:
-        modality -> (T_m, C_m) float32 array, or ``None`` where the stream is missing.
+        modality -> (T_m, C_m) float32 array, or ``None`` where the stream is missing or not among
+        ``config.modalities``.
     """
     out: dict[str, np.ndarray | None] = {}
     for key in MODALITIES:
         stream = record.stream(key)
-        if stream is None or stream.data.shape[0] == 0:
+        if stream is None or stream.data.shape[0] == 0 or key not in config.modalities:
             out[key] = None
         elif key in ("sound", "accel"):
             out[key] = spectral_features(stream, config.sound if key == "sound" else config.accel)
         else:
             out[key] = taxel_features(stream, config.normal if key == "normal" else config.friction)
     return out
+
+
+def keep_modalities(features: StrokeFeatures, modalities: Sequence[str]) -> dict[str, np.ndarray | None]:
+    """``features`` with every modality outside ``modalities`` marked missing (``None``)."""
+    return {key: features.get(key) if key in modalities else None for key in MODALITIES}
 
 
 # ----------------------------------------------------------------------------------------------------------

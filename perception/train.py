@@ -39,7 +39,7 @@ from perception.baselines import MODEL_REGISTRY, build_model
 from perception.checkpoint import config_from_dict, config_to_dict, load_checkpoint, save_checkpoint
 from perception.dataset import TASKS, labels_of
 from perception.features import (FeatureBatch, FeatureConfig, NormStats, StrokeFeatures, collate, feature_dims,
-                                 featurize, fit_norm_stats, normalize)
+                                 featurize, fit_norm_stats, keep_modalities, normalize)
 from perception.losses import total_loss
 from perception.streams import MODALITIES, StrokeRecord
 
@@ -471,6 +471,9 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         features_train = featurize_records(records_train, fc, progress, "featurize train")
     if features_val is None:
         features_val = featurize_records(records_val, fc, progress, "featurize val")
+    if fc.modalities != MODALITIES:  # precomputed features may hold the other sensors too
+        features_train = [keep_modalities(f, fc.modalities) for f in features_train]
+        features_val = [keep_modalities(f, fc.modalities) for f in features_val]
     stats = init.norm_stats if init is not None else fit_norm_stats(features_train, dims)
     norm_train = [normalize(f, stats) for f in features_train]
     norm_val = [normalize(f, stats) for f in features_val]

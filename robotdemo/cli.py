@@ -75,11 +75,20 @@ def _cmd_train(args: argparse.Namespace) -> int:
                                             else args.feature_noise),
                          split_by_object=args.split_by_object, group_by_length=args.group_by_length,
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
-                         model_overrides=overrides)
+                         model_overrides=overrides, feature_config=_feature_config(args.modalities))
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
     print(json.dumps(metrics, indent=2, default=str))
     return 0
+
+
+def _feature_config(modalities: str | None):
+    """The default front end, restricted to ``--modalities`` when given."""
+    from perception.features import FeatureConfig
+
+    if modalities is None:
+        return FeatureConfig()
+    return FeatureConfig(modalities=tuple(m.strip() for m in modalities.split(",") if m.strip()))
 
 
 def _model_option(text: str) -> tuple[str, object]:
@@ -231,6 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="training: probability of removing each modality of a stroke (default 0)")
     train.add_argument("--train-fraction", type=float, default=1.0,
                        help="train on this share of the training part, stratified (learning curves; default 1)")
+    train.add_argument("--modalities", default=None, metavar="S,N,...",
+                       help="train on these sensors only, comma-separated among sound, normal, friction, accel; "
+                            "the checkpoint then ignores the others (default: all four)")
     train.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
                        help="a field of the model's config, e.g. d_model=32 (repeatable)")
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")

@@ -310,3 +310,38 @@ def test_train_cli_offers_every_registered_model():
         assert args.model == name
     with pytest.raises(SystemExit):
         build_parser().parse_args(["train", "--data", "d", "--out", "o", "--model", "transformer"])
+
+
+def test_training_on_a_subset_of_sensors_ignores_the_others(toy, tmp_path):
+    fc = dataclasses.replace(TrainConfig().feature_config, modalities=("friction", "normal"))
+    assert fc.modalities == ("normal", "friction")  # kept in MODALITIES order
+    result = _fit(toy, _config(epochs=6, feature_config=fc), tmp_path / "nf")
+    ckpt = load_checkpoint(result.checkpoint_dir)
+    assert ckpt.feature_config.modalities == ("normal", "friction")
+    assert _test_accuracy(toy, result.checkpoint_dir) >= 0.6  # the taxels alone tell the toy categories apart
+    test = toy["pick"](toy["test"])
+    feats = [featurize(rec, ckpt.feature_config) for rec in test]
+    assert all(f["sound"] is None and f["accel"] is None and f["normal"] is not None for f in feats)
+    # fed through the checkpoint's own front end, the sound and acceleration streams change nothing
+    silenced = [dataclasses.replace(rec, streams={**rec.streams, "sound": None, "accel": None}) for rec in test]
+    dims = feature_dims(ckpt.feature_config)
+    a = predict(ckpt.model, feats, dims, stats=ckpt.norm_stats)
+    b = predict(ckpt.model, [featurize(rec, ckpt.feature_config) for rec in silenced], dims, stats=ckpt.norm_stats)
+    np.testing.assert_array_equal(a.logits, b.logits)
+    assert np.all(a.alphas[:, [0, 3]] == 0)  # sound and accel carry no weight
+
+
+def test_modalities_option_is_validated_and_old_configs_keep_all_four(tmp_path, capsys):
+    from perception.checkpoint import config_from_dict
+    from perception.features import FeatureConfig
+    from perception.streams import MODALITIES
+    from robotdemo.cli import main
+
+    for bad in ((), ("sound", "smell"), ("sound", "sound")):
+        with pytest.raises(ValueError, match="modalities must be distinct names"):
+            FeatureConfig(modalities=bad)
+    old = {k: v for k, v in dataclasses.asdict(FeatureConfig()).items() if k != "modalities"}  # as saved before
+    assert config_from_dict(FeatureConfig, old).modalities == MODALITIES
+    code = main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--modalities", "sound,smell"])
+    err = capsys.readouterr().err
+    assert code == 2 and "modalities must be distinct names" in err and len(err.strip().splitlines()) == 1
