@@ -41,7 +41,7 @@ from tqdm.auto import tqdm
 from perception.checkpoint import load_checkpoint
 from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ssmc_split, usmc_folds,
                                 validation_split)
-from perception.features import feature_dims
+from perception.features import feature_dims, keep_modalities
 from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
 from perception.streams import MODALITIES, MODALITY_SYMBOL
 from perception.train import (CHECKPOINT_DIR, DEVIATIONS, TrainConfig, TrainResult, featurize_records, predict,
@@ -107,6 +107,9 @@ class EvalConfig:
         corruption_ratios: p values of the robustness curve.
         corruption_std: corruption noise std, units of the per-channel training feature std.
         fire_models: networks of the clean -> fire experiment (each: clean only, fine-tuned, fire only).
+        single_sensor_models: networks trained and tested on one sensor at a time (SSMC, every seed; the other
+            streams treated as missing, ``FeatureConfig.modalities``): what each sensor carries by itself and
+            what fusing them adds (empty: skip it).
         fine_tune_epochs: epochs of clean -> fire fine-tuning.
         fine_tune_lr: fine-tuning learning rate.
         train: training settings shared by every run (model, task and seed are set per run); batches group
@@ -126,6 +129,7 @@ class EvalConfig:
     corruption_ratios: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(11))
     corruption_std: float = 1.0
     fire_models: tuple[str, ...] = ("touchformer", "touchformer_soft")
+    single_sensor_models: tuple[str, ...] = ("touchformer_soft", "mtcnn")
     fine_tune_epochs: int = 20
     fine_tune_lr: float = 3e-4
     train: TrainConfig = field(default_factory=lambda: TrainConfig(group_by_length=True))
@@ -136,6 +140,7 @@ class EvalConfig:
 def quick_config() -> EvalConfig:
     """A tiny version for tests and smoke runs: 2 epochs, 1 seed, 2 folds, p in {0, 0.5, 1}, tiny models."""
     return EvalConfig(seeds=(0,), n_folds=2, corruption_ratios=(0.0, 0.5, 1.0), fine_tune_epochs=2,
+                      single_sensor_models=("touchformer_soft",),
                       train=TrainConfig(epochs=2, batch_size=16, lr=3e-3, num_threads=1, group_by_length=True),
                       model_overrides={m: _tiny(m) for m in ("touchformer", "lstm", "mtcnn")})
 
@@ -283,7 +288,7 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
                                    names, run_name, train_changes)
         ckpt = load_checkpoint(res.checkpoint_dir, device=resolve_device(cfg.device))
         dims = feature_dims(ckpt.feature_config)
-        test_feats = [features[i] for i in test_idx]
+        test_feats = [keep_modalities(features[i], ckpt.feature_config.modalities) for i in test_idx]
         for drop in ("none",) + tuple(drops):
             preds = predict(ckpt.model, test_feats, dims, stats=ckpt.norm_stats, device=resolve_device(cfg.device),
                             corruption_ratio=corruption, corruption_std=ctx.config.corruption_std, seed=seed + 12345,
@@ -324,6 +329,32 @@ def _run_job(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     return _run(ctx, job.model, job.task, job.split, job.split_name, job.seed, job.corruption, records=records,
                 features=features, summaries=summaries, class_names=job.class_names, run_name=job.run_name,
                 train_changes=dict(job.train_changes) or None)
+
+
+def _single_sensor_jobs(ctx: _Context) -> list[_TrainJob]:
+    """One SSMC run per single-sensor model, seed and sensor: the model sees only that sensor
+    (``FeatureConfig.modalities``), in training and testing."""
+    fc = ctx.config.train.feature_config
+    return [_TrainJob(model, "ssmc", split_name, seed, split, run_name=f"single_sensor/{model}/{split_name}_{m}",
+                      train_changes=(("feature_config", dataclasses.replace(fc, modalities=(m,))),))
+            for model in ctx.config.single_sensor_models for split_name, seed, split in _splits(ctx, "ssmc")
+            for m in MODALITIES]
+
+
+def _single_sensor_experiment(ctx: _Context, all_four: Mapping[str, Sequence[Mapping[str, Any]]]) -> dict[str, Any]:
+    """Test and best validation accuracy (mean and std over the seeds) of each single-sensor model on each
+    sensor alone, beside the same model's Table-1 SSMC runs with all four (``all_four``: model -> runs)."""
+    runs: dict[str, dict[str, list]] = {}
+    for job in _single_sensor_jobs(ctx):
+        sensor = dict(job.train_changes)["feature_config"].modalities[0]
+        runs.setdefault(job.model, {}).setdefault(sensor, []).append(_run_job(ctx, job))
+    for model, rows in all_four.items():
+        if model in runs:
+            runs[model]["all"] = list(rows)
+    return {model: {sensor: {"accuracy": _mean_std([r["accuracy"] for r in rows]),
+                             "best_val_accuracy": _mean_std([r["best_val_accuracy"] for r in rows]),
+                             "runs": [_public(r) for r in rows]} for sensor, rows in per_sensor.items()}
+            for model, per_sensor in runs.items()}
 
 
 def _modality_weights(alphas: np.ndarray, features: Sequence[Mapping[str, Any]]) -> dict[str, list[float]]:
@@ -612,6 +643,20 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
     else:
         lines += ["## Robustness to corrupted modalities", "", "Not run in this report (`--no-robustness`).", ""]
 
+    if results.get("single_sensor"):
+        single = results["single_sensor"]
+        models = list(single)
+        lines += ["## One sensor at a time (SSMC accuracy [%], test; best validation in brackets)", "",
+                  "Each network trained and tested on one sensor, the other three treated as missing (our "
+                  "diagnostic, not in the paper); 'all four' are the same network's Table-1 runs.", "",
+                  "| sensor | " + " | ".join(MODEL_LABEL.get(m, m) for m in models) + " |", "|---|" + "---|" * len(models)]
+        for sensor in (*MODALITIES, "all"):
+            label = "all four" if sensor == "all" else f"{sensor} ({MODALITY_SYMBOL[sensor]})"
+            lines.append(f"| {label} | " + " | ".join(
+                f"{_pct(single[m][sensor]['accuracy'])} ({100 * single[m][sensor]['best_val_accuracy']['mean']:.1f})"
+                if sensor in single[m] else "-" for m in models) + " |")
+        lines.append("")
+
     if results.get("fire"):
         fire = results["fire"]
         lines += ["## Clean -> fire shift (category accuracy on the fire test part)", "",
@@ -726,7 +771,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         rob = [_TrainJob(m, "ssmc", f"seed{s0}", s0, rob_split, float(p)) for m, p in rob_jobs]
         fire_runs = [_fire_runs(ctx, m) for m in cfg.fire_models] if ctx.fire is not None else []
         _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
-                  + [j for j in table + rob if j.model not in cfg.models]
+                  + [j for j in table + rob if j.model not in cfg.models] + _single_sensor_jobs(ctx)
                   + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers)
         _pretrain(ctx, [r["finetuned"] for r in fire_runs], workers)  # these start from the clean checkpoints
     bar = tqdm(total=len(jobs) + len(rob_jobs), desc="evaluate", disable=not progress)
@@ -795,6 +840,9 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         figures.append("robustness.png")
     bar.close()
 
+    if cfg.single_sensor_models:
+        results["single_sensor"] = _single_sensor_experiment(
+            ctx, {m: per[("ssmc", m)] for m in cfg.single_sensor_models if ("ssmc", m) in per})
     if ctx.fire is not None:
         results["fire"] = _fire_experiment(ctx)
     results["figures"] = figures

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from perception.checkpoint import load_checkpoint
 from perception.dataset import write_dataset
 from perception.evaluate import PAPER, evaluate, g_mean, quick_config
 from tests.test_dataset import make_material_strokes
@@ -63,6 +64,15 @@ def test_quick_evaluation_writes_report(tmp_path):
     assert max(run["val_accuracy_curve"]) == pytest.approx(run["best_val_accuracy"], abs=1e-4)
     for model in ("touchformer", "lstm", "mtcnn", "touchformer_soft"):
         assert set(saved["robustness"]["curves"][model]) == {"0.0", "0.5", "1.0"}
+    single = saved["single_sensor"]["touchformer_soft"]
+    assert set(single) == {"sound", "normal", "friction", "accel", "all"}
+    assert single["all"]["accuracy"] == saved["table1"]["ssmc"]["touchformer_soft"]["accuracy"]
+    for i, sensor in enumerate(("sound", "normal", "friction", "accel")):
+        run = single[sensor]["runs"][0]
+        assert load_checkpoint(run["checkpoint"]).feature_config.modalities == (sensor,)
+        assert run["alpha_mean"][i] == pytest.approx(1.0)  # the only sensor it was given carries all the weight
+        assert 0.0 <= single[sensor]["accuracy"]["mean"] <= 1.0
+    assert "One sensor at a time" in (out / "REPORT.md").read_text()
     assert len(saved["fire"]["rows"]) == 3 * 2 + 2  # three per network, two for the reference
     assert {row["model"] for row in saved["fire"]["rows"]} == {"touchformer", "touchformer_soft", "reference"}
     assert all(0.0 <= row["accuracy"] <= 1.0 for row in saved["fire"]["rows"])
@@ -90,7 +100,7 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
     write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
     config = dataclasses.replace(quick_config(), models=("touchformer", "lstm", "reference"), ablation=False,
                                  robustness_models=("lstm",), corruption_ratios=(0.0, 1.0), tsne=False,
-                                 fire_models=("lstm",))
+                                 fire_models=("lstm",), single_sensor_models=("lstm",))
     pretrained: list[str] = []
     pretrain = evaluation._pretrain
 
@@ -110,6 +120,9 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
             assert (runs[1]["table1"][task][model]["accuracy"] == runs[2]["table1"][task][model]["accuracy"]), \
                 (task, model)
     assert runs[1]["robustness"]["curves"] == runs[2]["robustness"]["curves"]
+    for sensor in ("sound", "normal", "friction", "accel", "all"):
+        assert runs[1]["single_sensor"]["lstm"][sensor]["accuracy"] == runs[2]["single_sensor"]["lstm"][sensor]["accuracy"]
+    assert sum(name.startswith("single_sensor/lstm/") for name in pretrained) == 4
     # the workers trained the fire runs too, fine-tuning after the clean run it starts from
     fire_runs = [name for name in pretrained if name.startswith("fire/")]
     assert set(fire_runs) == {"fire/clean_lstm", "fire/scratch_lstm", "fire/finetuned_lstm"}
