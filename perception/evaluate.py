@@ -331,12 +331,12 @@ def _run_job(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
                 train_changes=dict(job.train_changes) or None)
 
 
-def _single_sensor_jobs(ctx: _Context) -> list[_TrainJob]:
-    """One SSMC run per single-sensor model, seed and sensor: the model sees only that sensor
-    (``FeatureConfig.modalities``), in training and testing."""
+def _single_sensor_jobs(ctx: _Context) -> list[tuple[str, _TrainJob]]:
+    """(sensor, run): one SSMC run per single-sensor model, seed and sensor, in which the model sees only that
+    sensor (``FeatureConfig.modalities``), in training and testing."""
     fc = ctx.config.train.feature_config
-    return [_TrainJob(model, "ssmc", split_name, seed, split, run_name=f"single_sensor/{model}/{split_name}_{m}",
-                      train_changes=(("feature_config", dataclasses.replace(fc, modalities=(m,))),))
+    return [(m, _TrainJob(model, "ssmc", split_name, seed, split, run_name=f"single_sensor/{model}/{split_name}_{m}",
+                          train_changes=(("feature_config", dataclasses.replace(fc, modalities=(m,))),)))
             for model in ctx.config.single_sensor_models for split_name, seed, split in _splits(ctx, "ssmc")
             for m in MODALITIES]
 
@@ -345,8 +345,7 @@ def _single_sensor_experiment(ctx: _Context, all_four: Mapping[str, Sequence[Map
     """Test and best validation accuracy (mean and std over the seeds) of each single-sensor model on each
     sensor alone, beside the same model's Table-1 SSMC runs with all four (``all_four``: model -> runs)."""
     runs: dict[str, dict[str, list]] = {}
-    for job in _single_sensor_jobs(ctx):
-        sensor = dict(job.train_changes)["feature_config"].modalities[0]
+    for sensor, job in _single_sensor_jobs(ctx):
         runs.setdefault(job.model, {}).setdefault(sensor, []).append(_run_job(ctx, job))
     for model, rows in all_four.items():
         if model in runs:
@@ -771,7 +770,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         rob = [_TrainJob(m, "ssmc", f"seed{s0}", s0, rob_split, float(p)) for m, p in rob_jobs]
         fire_runs = [_fire_runs(ctx, m) for m in cfg.fire_models] if ctx.fire is not None else []
         _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
-                  + [j for j in table + rob if j.model not in cfg.models] + _single_sensor_jobs(ctx)
+                  + [j for j in table + rob if j.model not in cfg.models] + [job for _, job in _single_sensor_jobs(ctx)]
                   + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers)
         _pretrain(ctx, [r["finetuned"] for r in fire_runs], workers)  # these start from the clean checkpoints
     bar = tqdm(total=len(jobs) + len(rob_jobs), desc="evaluate", disable=not progress)

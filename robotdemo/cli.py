@@ -7,9 +7,12 @@ import ast
 import json
 import sys
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 from robotdemo.errors import RobotDemoError
+
+if TYPE_CHECKING:  # the CLI imports perception (and torch) only in the commands that need it
+    from perception.features import FeatureConfig
 
 
 def _cmd_scene(args: argparse.Namespace) -> int:
@@ -82,7 +85,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _feature_config(modalities: str | None):
+def _feature_config(modalities: str | None) -> FeatureConfig:
     """The default front end, restricted to ``--modalities`` when given."""
     from perception.features import FeatureConfig
 
