@@ -648,7 +648,8 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
         lines += ["## One sensor at a time (SSMC accuracy [%], test; best validation in brackets)", "",
                   "Each network trained and tested on one sensor, the other three treated as missing (our "
                   "diagnostic, not in the paper); 'all four' are the same network's Table-1 runs.", "",
-                  "| sensor | " + " | ".join(MODEL_LABEL.get(m, m) for m in models) + " |", "|---|" + "---|" * len(models)]
+                  "| sensor | " + " | ".join(MODEL_LABEL.get(m, m) for m in models) + " |",
+                  "|---|" + "---|" * len(models)]
         for sensor in (*MODALITIES, "all"):
             label = "all four" if sensor == "all" else f"{sensor} ({MODALITY_SYMBOL[sensor]})"
             lines.append(f"| {label} | " + " | ".join(
@@ -770,7 +771,8 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         rob = [_TrainJob(m, "ssmc", f"seed{s0}", s0, rob_split, float(p)) for m, p in rob_jobs]
         fire_runs = [_fire_runs(ctx, m) for m in cfg.fire_models] if ctx.fire is not None else []
         _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
-                  + [j for j in table + rob if j.model not in cfg.models] + [job for _, job in _single_sensor_jobs(ctx)]
+                  + [j for j in table + rob if j.model not in cfg.models]
+                  + [job for _, job in _single_sensor_jobs(ctx)]
                   + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers)
         _pretrain(ctx, [r["finetuned"] for r in fire_runs], workers)  # these start from the clean checkpoints
     bar = tqdm(total=len(jobs) + len(rob_jobs), desc="evaluate", disable=not progress)

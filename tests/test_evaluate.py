@@ -120,8 +120,9 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
             assert (runs[1]["table1"][task][model]["accuracy"] == runs[2]["table1"][task][model]["accuracy"]), \
                 (task, model)
     assert runs[1]["robustness"]["curves"] == runs[2]["robustness"]["curves"]
+    single = {w: runs[w]["single_sensor"]["lstm"] for w in (1, 2)}
     for sensor in ("sound", "normal", "friction", "accel", "all"):
-        assert runs[1]["single_sensor"]["lstm"][sensor]["accuracy"] == runs[2]["single_sensor"]["lstm"][sensor]["accuracy"]
+        assert single[1][sensor]["accuracy"] == single[2][sensor]["accuracy"]
     assert sum(name.startswith("single_sensor/lstm/") for name in pretrained) == 4
     # the workers trained the fire runs too, fine-tuning after the clean run it starts from
     fire_runs = [name for name in pretrained if name.startswith("fire/")]
