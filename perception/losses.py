@@ -53,7 +53,7 @@ def cross_instance_contrastive_loss(embedding: torch.Tensor, labels: torch.Tenso
 
 
 def total_loss(logits: torch.Tensor, embedding: torch.Tensor, labels: torch.Tensor, cer_lambda: float,
-               cer_tau: float) -> LossTerms:
+               cer_tau: float, label_smoothing: float = 0.0) -> LossTerms:
     """L_total = L_cls + lambda * L_C (eq. 14); with cer_lambda = 0 the contrastive term is still reported.
 
     Args:
@@ -62,8 +62,9 @@ def total_loss(logits: torch.Tensor, embedding: torch.Tensor, labels: torch.Tens
         labels: (B,) class indices.
         cer_lambda: weight lambda of the CER term.
         cer_tau: CER temperature tau.
+        label_smoothing: smoothing of the cross-entropy's targets (0: plain L_cls as in the paper).
     """
-    ce = F.cross_entropy(logits, labels)
+    ce = F.cross_entropy(logits, labels, label_smoothing=label_smoothing)
     contrastive = cross_instance_contrastive_loss(embedding, labels, cer_tau)
     total = ce + cer_lambda * contrastive if cer_lambda > 0 else ce
     return LossTerms(total=total, ce=ce, contrastive=contrastive.detach() if cer_lambda <= 0 else contrastive)

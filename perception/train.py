@@ -88,6 +88,9 @@ class TrainConfig:
         weight_decay: weight decay (decoupled for "adamw", L2 for "adam").
         optimizer: "adamw" or "adam".
         schedule: "cosine" (per step, to 0 at the last step) or "constant".
+        warmup_epochs: the lr rises linearly from 0 over this many epochs (per step) before the schedule; 0
+            starts at ``lr`` as the paper does.
+        label_smoothing: cross-entropy label smoothing (0: the paper's plain cross-entropy).
         grad_clip: max gradient norm; 0 disables clipping.
         seed: seeds the model init, data order, dropout and augmentation.
         device: "auto" (CUDA when available), "cpu" or "cuda".
@@ -107,6 +110,8 @@ class TrainConfig:
         group_by_length: batches of strokes of similar length (:func:`length_grouped_batches`) instead of
             uniformly shuffled ones, so that less of each batch is padding. Off by default: the committed robot
             checkpoint was trained without it, and its training command must reproduce it.
+        time_crop: training only: each stroke is cut to a random window covering a uniform share in
+            [``time_crop``, 1] of its duration, the same share of every stream (:func:`crop_in_time`); 1 disables it.
         modality_dropout: training only: probability that each present modality of a sample is removed (marked
             missing, as a sensor that dropped out; :func:`drop_modalities`), at least one kept per sample.
             Trains a model not to lean on one stream alone. 0 disables it.
@@ -124,6 +129,8 @@ class TrainConfig:
     weight_decay: float = 0.01
     optimizer: str = "adamw"
     schedule: str = "cosine"
+    warmup_epochs: int = 0
+    label_smoothing: float = 0.0
     grad_clip: float = 1.0
     seed: int = 0
     device: str = "auto"
@@ -136,6 +143,7 @@ class TrainConfig:
     num_threads: int = 0
     group_by_length: bool = False
     modality_dropout: float = 0.0
+    time_crop: float = 1.0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -149,6 +157,10 @@ class TrainConfig:
             raise ValueError(f"optimizer must be 'adam' or 'adamw', got {self.optimizer!r}")
         if self.schedule not in ("cosine", "constant"):
             raise ValueError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
+        if not 0 <= self.warmup_epochs < self.epochs:
+            raise ValueError(f"warmup_epochs must lie in [0, epochs), got {self.warmup_epochs}")
+        if not 0.0 <= self.label_smoothing < 1.0:
+            raise ValueError(f"label_smoothing must lie in [0, 1), got {self.label_smoothing}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
         if self.epochs < 1 or self.batch_size < 1:
@@ -157,6 +169,8 @@ class TrainConfig:
             raise ValueError(f"corruption_ratio must lie in [0, 1], got {self.corruption_ratio}")
         if not 0.0 <= self.modality_dropout < 1.0:
             raise ValueError(f"modality_dropout must lie in [0, 1), got {self.modality_dropout}")
+        if not 0.0 < self.time_crop <= 1.0:
+            raise ValueError(f"time_crop must lie in (0, 1], got {self.time_crop}")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
         if not 0.0 < self.train_fraction <= 1.0:
@@ -256,6 +270,30 @@ def add_feature_noise(batch: FeatureBatch, std: float, generator: torch.Generato
     return dataclasses.replace(batch, x=x)
 
 
+def crop_in_time(features: StrokeFeatures, min_share: float, generator: torch.Generator
+                 ) -> dict[str, np.ndarray | None]:
+    """Training augmentation: the stroke cut to one random window of its duration.
+
+    The window covers a share ``u ~ U(min_share, 1)`` of the stroke, starting at ``a ~ U(0, 1 - u)``; each
+    stream keeps its frames ``[floor(a T), ceil((a + u) T))`` (at least one), so the streams keep the same span of
+    the stroke whatever their rates. Missing streams stay missing; ``min_share`` 1 returns the features as they are.
+    """
+    if min_share >= 1.0:
+        return dict(features)
+    share, start = torch.rand(2, generator=generator, dtype=torch.float64).tolist()
+    share = min_share + (1.0 - min_share) * share
+    start *= 1.0 - share
+    out: dict[str, np.ndarray | None] = {}
+    for m, f in features.items():
+        if f is None:
+            out[m] = None
+            continue
+        lo = min(int(math.floor(start * len(f))), len(f) - 1)
+        hi = max(int(math.ceil((start + share) * len(f))), lo + 1)
+        out[m] = f[lo:hi]
+    return out
+
+
 def drop_modalities(batch: FeatureBatch, prob: float, generator: torch.Generator) -> FeatureBatch:
     """Training augmentation: each present modality of each sample is removed with probability ``prob``
     (features zeroed, every step padding, ``present`` False: exactly what :func:`collate` gives for a missing
@@ -345,9 +383,21 @@ def length_grouped_batches(order: np.ndarray, lengths: np.ndarray, batch_size: i
     return [batches[i] for i in perm]
 
 
-def cosine_lr(base_lr: float, step: int, total_steps: int) -> float:
-    """lr at ``step`` (0-based) of a cosine decay from ``base_lr`` to 0 at ``total_steps``."""
-    return 0.5 * base_lr * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))
+def cosine_lr(base_lr: float, step: int, total_steps: int, warmup_steps: int = 0) -> float:
+    """lr at ``step`` (0-based) of a linear rise from 0 to ``base_lr`` over ``warmup_steps`` and then a cosine
+    decay to 0 at ``total_steps``."""
+    if step < warmup_steps:
+        return base_lr * (step + 1) / warmup_steps
+    decay_steps = max(total_steps - warmup_steps, 1)
+    return 0.5 * base_lr * (1.0 + math.cos(math.pi * min(step - warmup_steps, decay_steps) / decay_steps))
+
+
+def scheduled_lr(config: TrainConfig, step: int, steps_per_epoch: int) -> float:
+    """The learning rate of training step ``step`` (0-based) under ``config``'s warmup and schedule."""
+    warmup_steps = config.warmup_epochs * steps_per_epoch
+    if config.schedule == "cosine":
+        return cosine_lr(config.lr, step, config.epochs * steps_per_epoch, warmup_steps)
+    return config.lr * min(1.0, (step + 1) / warmup_steps) if warmup_steps else config.lr
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -492,7 +542,6 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         raise TrainError("no training strokes")
     steps_per_epoch = max(1, math.ceil(n / config.batch_size))
     lengths = np.array([sum(0 if f.get(m) is None else len(f[m]) for m in MODALITIES) for f in norm_train])
-    total_steps = config.epochs * steps_per_epoch
     identity = {"config": config.to_dict(), "class_names": list(names), "n_train": n, "n_val": len(norm_val),
                 "data_sha256": f"{strokes_fingerprint(records_train)}:{strokes_fingerprint(records_val)}"}
 
@@ -530,15 +579,17 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             if idx.size == 0:
                 continue
             step = epoch * steps_per_epoch + b
-            lr = cosine_lr(config.lr, step, total_steps) if config.schedule == "cosine" else config.lr
+            lr = scheduled_lr(config, step, steps_per_epoch)
             for group in optimizer.param_groups:
                 group["lr"] = lr
-            batch = collate([norm_train[i] for i in idx], dims, labels=y_train[idx].tolist())
+            batch = collate([crop_in_time(norm_train[i], config.time_crop, gen) for i in idx], dims,
+                            labels=y_train[idx].tolist())
             batch = add_feature_noise(batch, config.feature_noise_std, gen)
             batch = drop_modalities(batch, config.modality_dropout, gen)
             batch = corrupt_batch(batch, config.corruption_ratio, config.corruption_std, gen).to(device)
             out = model(batch)
-            terms = total_loss(out.logits, out.embedding, batch.labels, model_config.cer_lambda, model_config.cer_tau)
+            terms = total_loss(out.logits, out.embedding, batch.labels, model_config.cer_lambda, model_config.cer_tau,
+                               label_smoothing=config.label_smoothing)
             optimizer.zero_grad(set_to_none=True)
             terms.total.backward()
             if config.grad_clip > 0:

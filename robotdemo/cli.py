@@ -78,6 +78,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                                             else args.feature_noise),
                          split_by_object=args.split_by_object, group_by_length=args.group_by_length,
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
+                         warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
+                         time_crop=args.time_crop,
                          model_overrides=overrides, feature_config=_feature_config(args.modalities))
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
@@ -243,6 +245,13 @@ def build_parser() -> argparse.ArgumentParser:
                        help="training: probability of removing each modality of a stroke (default 0)")
     train.add_argument("--train-fraction", type=float, default=1.0,
                        help="train on this share of the training part, stratified (learning curves; default 1)")
+    train.add_argument("--warmup-epochs", type=int, default=0,
+                       help="linear lr warmup over this many epochs before the cosine decay (default 0)")
+    train.add_argument("--label-smoothing", type=float, default=0.0,
+                       help="cross-entropy label smoothing (default 0, the paper's loss)")
+    train.add_argument("--time-crop", type=float, default=1.0, metavar="SHARE",
+                       help="training: cut each stroke to a random window of at least this share of it "
+                            "(default 1: off)")
     train.add_argument("--modalities", default=None, metavar="S,N,...",
                        help="train on these sensors only, comma-separated among sound, normal, friction, accel; "
                             "the checkpoint then ignores the others (default: all four)")

@@ -91,3 +91,6 @@ def test_total_loss_combines_terms():
     assert emb.grad.abs().sum() > 0 and logits.grad.abs().sum() > 0
     off = total_loss(logits, emb, y, cer_lambda=0.0, cer_tau=0.2)
     assert off.total.item() == pytest.approx(off.ce.item())
+    smooth = total_loss(logits, emb, y, cer_lambda=0.0, cer_tau=0.2, label_smoothing=0.1)
+    uniform = -F.log_softmax(logits, dim=1).mean(dim=1).mean()  # cross-entropy against the uniform target
+    assert smooth.ce.item() == pytest.approx(0.9 * off.ce.item() + 0.1 * uniform.item(), rel=1e-6)

@@ -14,9 +14,9 @@ from perception.checkpoint import load_checkpoint
 from perception.dataset import labels_of, ssmc_split, validation_split, write_dataset
 from perception.features import collate, feature_dims, featurize
 from perception.baselines import build_model
-from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, drop_modalities, featurize_records,
-                              length_grouped_batches, predict, strokes_fingerprint, task_split, train,
-                              train_command)
+from perception.train import (TrainConfig, TrainError, corrupt_batch, cosine_lr, crop_in_time, drop_modalities,
+                              featurize_records, length_grouped_batches, predict, scheduled_lr, strokes_fingerprint,
+                              task_split, train, train_command)
 from tests.test_dataset import make_material_strokes
 
 TINY = {
@@ -149,6 +149,48 @@ def test_corruption_and_schedule():
     assert cosine_lr(1e-3, 0, 100) == pytest.approx(1e-3)
     assert cosine_lr(1e-3, 50, 100) == pytest.approx(5e-4)
     assert cosine_lr(1e-3, 100, 100) == pytest.approx(0.0)
+
+
+def test_warmup_rises_linearly_then_decays_and_is_validated():
+    cfg = TrainConfig(epochs=10, lr=1e-3, warmup_epochs=2)
+    steps = 4  # per epoch: warmup covers steps 0-7, the cosine the 32 after
+    lrs = [scheduled_lr(cfg, k, steps) for k in range(40)]
+    assert lrs[:8] == pytest.approx([1e-3 * (k + 1) / 8 for k in range(8)])
+    assert lrs[8] == pytest.approx(1e-3) and lrs[24] == pytest.approx(5e-4)
+    assert all(a >= b for a, b in zip(lrs[8:], lrs[9:]))
+    assert scheduled_lr(TrainConfig(epochs=10, lr=1e-3), 0, steps) == pytest.approx(1e-3)  # no warmup: the paper's
+    const = TrainConfig(epochs=10, lr=1e-3, warmup_epochs=1, schedule="constant")
+    assert [scheduled_lr(const, k, steps) for k in (0, 3, 4, 39)] == pytest.approx([2.5e-4, 1e-3, 1e-3, 1e-3])
+    with pytest.raises(ValueError, match="warmup_epochs"):
+        TrainConfig(epochs=5, warmup_epochs=5)
+    with pytest.raises(ValueError, match="label_smoothing"):
+        TrainConfig(label_smoothing=1.0)
+
+
+def test_time_crop_keeps_the_same_span_of_every_stream():
+    rng = np.random.default_rng(0)
+    feats = {"sound": rng.normal(size=(200, 3)), "normal": rng.normal(size=(50, 2)), "friction": None,
+             "accel": rng.normal(size=(7, 2))}
+    gen = torch.Generator().manual_seed(0)
+    untouched = crop_in_time(feats, 1.0, gen)  # off: the same arrays, and no draw from the generator
+    assert all(untouched[m] is feats[m] for m in feats)
+    assert torch.equal(gen.get_state(), torch.Generator().manual_seed(0).get_state())
+    spans = []
+    for _ in range(50):
+        out = crop_in_time(feats, 0.5, gen)
+        assert out["friction"] is None
+        for m in ("sound", "normal", "accel"):
+            f, c = feats[m], out[m]
+            assert 1 <= len(c) <= len(f)
+            start = next(i for i in range(len(f) - len(c) + 1) if np.array_equal(f[i:i + len(c)], c))  # a window
+            spans.append((m, start / len(f), len(c) / len(f)))
+        sound, normal = spans[-3][1:], spans[-2][1:]
+        assert abs(sound[0] - normal[0]) <= 1 / 50 and abs(sound[1] - normal[1]) <= 2 / 50  # same span
+        assert sound[1] >= 0.5 - 1e-9
+    shares = [s for m, _, s in spans if m == "sound"]
+    assert min(shares) < 0.6 and max(shares) > 0.9  # shares spread over [0.5, 1]
+    with pytest.raises(ValueError, match="time_crop"):
+        TrainConfig(time_crop=0.0)
 
 
 def test_modality_dropout_marks_streams_missing_and_keeps_one():
