@@ -270,8 +270,7 @@ def add_feature_noise(batch: FeatureBatch, std: float, generator: torch.Generato
     return dataclasses.replace(batch, x=x)
 
 
-def crop_in_time(features: StrokeFeatures, min_share: float, generator: torch.Generator
-                 ) -> dict[str, np.ndarray | None]:
+def crop_in_time(features: StrokeFeatures, min_share: float, generator: torch.Generator) -> StrokeFeatures:
     """Training augmentation: the stroke cut to one random window of its duration.
 
     The window covers a share ``u ~ U(min_share, 1)`` of the stroke, starting at ``a ~ U(0, 1 - u)``; each
@@ -279,7 +278,7 @@ def crop_in_time(features: StrokeFeatures, min_share: float, generator: torch.Ge
     the stroke whatever their rates. Missing streams stay missing; ``min_share`` 1 returns the features as they are.
     """
     if min_share >= 1.0:
-        return dict(features)
+        return features
     share, start = torch.rand(2, generator=generator, dtype=torch.float64).tolist()
     share = min_share + (1.0 - min_share) * share
     start *= 1.0 - share
@@ -383,21 +382,20 @@ def length_grouped_batches(order: np.ndarray, lengths: np.ndarray, batch_size: i
     return [batches[i] for i in perm]
 
 
-def cosine_lr(base_lr: float, step: int, total_steps: int, warmup_steps: int = 0) -> float:
-    """lr at ``step`` (0-based) of a linear rise from 0 to ``base_lr`` over ``warmup_steps`` and then a cosine
-    decay to 0 at ``total_steps``."""
-    if step < warmup_steps:
-        return base_lr * (step + 1) / warmup_steps
-    decay_steps = max(total_steps - warmup_steps, 1)
-    return 0.5 * base_lr * (1.0 + math.cos(math.pi * min(step - warmup_steps, decay_steps) / decay_steps))
+def cosine_lr(base_lr: float, step: int, total_steps: int) -> float:
+    """lr at ``step`` (0-based) of a cosine decay from ``base_lr`` to 0 at ``total_steps``."""
+    return 0.5 * base_lr * (1.0 + math.cos(math.pi * min(step, total_steps) / max(total_steps, 1)))
 
 
 def scheduled_lr(config: TrainConfig, step: int, steps_per_epoch: int) -> float:
-    """The learning rate of training step ``step`` (0-based) under ``config``'s warmup and schedule."""
+    """The learning rate of training step ``step`` (0-based): a linear rise from 0 over ``config.warmup_epochs``,
+    then ``config.schedule`` (the cosine decays to 0 over the steps after the warmup)."""
     warmup_steps = config.warmup_epochs * steps_per_epoch
-    if config.schedule == "cosine":
-        return cosine_lr(config.lr, step, config.epochs * steps_per_epoch, warmup_steps)
-    return config.lr * min(1.0, (step + 1) / warmup_steps) if warmup_steps else config.lr
+    if step < warmup_steps:
+        return config.lr * (step + 1) / warmup_steps
+    if config.schedule == "constant":
+        return config.lr
+    return cosine_lr(config.lr, step - warmup_steps, config.epochs * steps_per_epoch - warmup_steps)
 
 
 # ----------------------------------------------------------------------------------------------------------
