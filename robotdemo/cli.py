@@ -37,10 +37,21 @@ def _cmd_scene(args: argparse.Namespace) -> int:
     return 0
 
 
+def _seconds_or_none(text: str, option: str) -> float | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{option} must be a number of seconds or 'none', got {text!r}") from None
+
+
 def _cmd_dataset(args: argparse.Namespace) -> int:
     from robotdemo.dataset import DatasetConfig, generate_dataset
 
     objects = {} if args.objects_per_instance is None else {"objects_per_instance": args.objects_per_instance}
+    if args.max_slide_s is not None:
+        objects["max_slide_s"] = _seconds_or_none(args.max_slide_s, "--max-slide-s")
     config = DatasetConfig(strokes_per_instance=args.strokes_per_instance, **objects, seed=args.seed, env=args.env,
                            categories=tuple(args.categories.split(",")) if args.categories else None)
     manifest = generate_dataset(args.out, config, workers=args.workers, progress=not args.quiet)
@@ -212,6 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--workers", type=int, default=1)
     dataset.add_argument("--env", choices=["clean", "fire"], default="clean")
     dataset.add_argument("--categories", default=None, help="comma-separated subset, e.g. metal,wood")
+    dataset.add_argument("--max-slide-s", default=None, metavar="S",
+                         help="cut each drawn slide to what its speed covers in S seconds, not below 20 mm "
+                              "(default 0.8; 'none': the drawn length stands)")
     dataset.add_argument("--quiet", action="store_true", help="no progress bar")
     dataset.set_defaults(func=_cmd_dataset)
 

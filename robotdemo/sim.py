@@ -38,7 +38,9 @@ class SimConfig:
 
     Attributes:
         time_step_s: physics step; 1 ms keeps finger contacts and the tactile pad stable.
-        solver_iterations: constraint solver iterations per step (contact-rich sliding needs many).
+        solver_iterations: constraint solver iterations per step (contact-rich sliding needs many: at 50 or 30
+            a stroke on a stiff pine block held its median force but spiked to 4.7 N or 17 N against a 2 N
+            target, where 100 keeps it within +-20 %; scratch, the stroke test's own case).
         Friction uses Bullet's cone model: without it a step in contact costs half (0.34 vs 0.67 ms) but the
         pad slid over the objects with almost no friction reported (1e-3 N against 1.3 N expected).
         solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
@@ -320,6 +322,36 @@ class Simulator:
             points.append(cp)
         return points
 
+    def pose_velocity_row(self, body: int, link: int) -> tuple[float, ...]:
+        """A link frame's world position (3, m), orientation (4, xyzw) and linear velocity (3, m/s) as one flat
+        tuple of floats: :meth:`link_state` without the arrays, for loops that log every physics step (building
+        the arrays and records cost a stroke's recording as much as a tenth of the physics)."""
+        if link < 0:
+            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
+            lin, _ = p.getBaseVelocity(body, physicsClientId=self.client)
+        else:
+            st = p.getLinkState(body, link, computeLinkVelocity=1, computeForwardKinematics=1,
+                                physicsClientId=self.client)
+            pos, orn, lin = st[4], st[5], st[6]
+        row = (*pos, *orn, *lin)
+        if not all(map(math.isfinite, row)):
+            raise SimulationError(f"simulation diverged: state of body {body} link {link} became NaN or inf "
+                                  f"at t={self.time_s:.3f} s")
+        return row
+
+    def contact_rows(self, body_a: int, body_b: int, link_a: int) -> list[tuple[float, ...]]:
+        """Contact points of the last step between one link of ``body_a`` and ``body_b`` as flat tuples of
+        floats (the :class:`ContactPoint` fields): position on A (3, m), normal force (N), lateral friction 1
+        (N) and its direction (3), lateral friction 2 (N) and its direction (3). For per-step logging."""
+        rows = []
+        for c in p.getContactPoints(bodyA=body_a, bodyB=body_b, linkIndexA=link_a, physicsClientId=self.client):
+            if not (math.isfinite(c[9]) and math.isfinite(c[10]) and math.isfinite(c[12])):
+                raise SimulationError(
+                    f"simulation diverged: non-finite contact force between bodies {body_a} and {body_b} "
+                    f"at t={self.time_s:.3f} s")
+            rows.append((*c[5], c[9], c[10], *c[11], c[12], *c[13]))
+        return rows
+
     def all_contact_points(self) -> list[ContactPoint]:
         return [cp for body in range(p.getNumBodies(physicsClientId=self.client))
                 for cp in self.contact_points(p.getBodyUniqueId(body, physicsClientId=self.client))
@@ -366,6 +398,15 @@ class Simulator:
         """Set joint positions directly (initialisation only, before the run starts)."""
         for j, q in zip(joints, positions_rad):
             p.resetJointState(body, j, q, 0.0, physicsClientId=self.client)
+
+    def clamp_in_place(self, body: int, max_force_n: float = 1e4) -> int:
+        """Hold ``body`` where it is now with a fixed joint to the world (a fixture clamping a sample to the
+        table: the base stays put under forces up to ``max_force_n``). Returns the constraint's id."""
+        position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
+        constraint = p.createConstraint(body, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0], [0, 0, 0], position,
+                                        childFrameOrientation=orientation, physicsClientId=self.client)
+        p.changeConstraint(constraint, maxForce=max_force_n, physicsClientId=self.client)
+        return constraint
 
     def remove_body(self, body: int) -> None:
         p.removeBody(body, physicsClientId=self.client)

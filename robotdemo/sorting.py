@@ -101,6 +101,8 @@ class SortingConfig:
         trust_threshold: a modality whose gate weight alpha is at least this counts as trusted.
         stroke_force_n, stroke_speed_mps, stroke_length_m: ranges (low, high) each stroke's parameters are drawn
             from.
+        stroke_max_slide_s: when given, a drawn length is cut to what the drawn speed covers in this time (but
+            not below the controller's 20 mm), so a slow stroke is a short one (``None``: no cut).
         stroke_edge_margin_m: the slide stays this far from the top face's ends.
         stroke_side_margin_m: the pad's centre line stays this far from the face's sides (half the pad).
         stroke_hover_m: hover height above the stroke start before pressing.
@@ -185,6 +187,7 @@ class SortingConfig:
     gentle_force_n: float = 0.5
     stroke_speed_mps: tuple[float, float] = (0.02, 0.03)
     stroke_length_m: tuple[float, float] = (0.02, 0.03)
+    stroke_max_slide_s: float | None = None
     stroke_edge_margin_m: float = 0.006
     stroke_side_margin_m: float = 0.012
     stroke_hover_m: float = 0.006
@@ -231,6 +234,8 @@ class SortingConfig:
             raise ValueError(f"confidence_threshold must lie in [0, 1], got {self.confidence_threshold}")
         if self.max_strokes < 1 or self.max_grasp_attempts < 1:
             raise ValueError("max_strokes and max_grasp_attempts must be >= 1")
+        if self.stroke_max_slide_s is not None and not self.stroke_max_slide_s > 0.0:
+            raise ValueError(f"stroke_max_slide_s must be > 0 s or None, got {self.stroke_max_slide_s}")
         bad = {state: mode for state, mode in self.step_modes.items() if mode not in STEP_MODES}
         if bad:
             raise ValueError(f"step_modes has unknown modes {bad}; expected one of {STEP_MODES}")
@@ -463,6 +468,8 @@ def plan_stroke(geometry: RestingGeometry, config: SortingConfig, rng: np.random
     force = float(rng.uniform(*config.stroke_force_n))
     speed = float(rng.uniform(*config.stroke_speed_mps))
     length = float(rng.uniform(*config.stroke_length_m))
+    if config.stroke_max_slide_s is not None:
+        length = min(length, max(0.02, speed * config.stroke_max_slide_s))
     if geometry.round_top:
         radius = 0.5 * geometry.long_m
         side_room = max(0.0, 0.5 * (radius - config.stroke_side_margin_m))

@@ -75,29 +75,62 @@ def distribute_patch(positions_m: np.ndarray, normal_n: np.ndarray, shear_n: np.
     return out_pos, out_normal, out_shear, out_valid
 
 
+def _rotation_matrices(xyzw: np.ndarray) -> np.ndarray:
+    """(T, 4) quaternions (x, y, z, w) -> (T, 3, 3) rotation matrices (body -> world), normalised as Bullet's
+    ``getMatrixFromQuaternion`` does (its quaternions are unit only to about 1e-8)."""
+    x, y, z, w = xyzw.T
+    s = 2.0 / np.sum(xyzw * xyzw, axis=1)
+    return np.stack([
+        np.stack([1 - s * (y * y + z * z), s * (x * y - z * w), s * (x * z + y * w)], axis=-1),
+        np.stack([s * (x * y + z * w), 1 - s * (x * x + z * z), s * (y * z - x * w)], axis=-1),
+        np.stack([s * (x * z - y * w), s * (y * z + x * w), 1 - s * (x * x + y * y)], axis=-1)], axis=1)
+
+
 @dataclass
 class _TraceRecorder:
-    """Collects one row per physics step (raw contact points; the patch is spread out in :meth:`to_trace`)."""
+    """Collects one row per physics step as the simulator reports it (flat tuples of floats: logging arrays
+    step by step cost as much as a tenth of the physics); :meth:`to_trace` turns the rows into pad-frame
+    quantities and spreads face-on-face contacts over their patch, all steps at once.
 
+    Rows: ``pad`` and ``obj`` are :meth:`robotdemo.sim.Simulator.pose_velocity_row` of the pad link and the
+    object, ``contacts`` up to ``RAW_CONTACT_POINTS`` :meth:`~robotdemo.sim.Simulator.contact_rows`, ``step_s``
+    the physics step that led to the row.
+    """
+
+    gravity_mps2: float
     t_s: list = field(default_factory=list)
-    valid: list = field(default_factory=list)
-    normal: list = field(default_factory=list)
-    shear: list = field(default_factory=list)
-    on_pad: list = field(default_factory=list)
-    on_object: list = field(default_factory=list)
-    velocity: list = field(default_factory=list)
-    acceleration: list = field(default_factory=list)
+    step_s: list = field(default_factory=list)
+    pad: list = field(default_factory=list)
+    obj: list = field(default_factory=list)
+    contacts: list = field(default_factory=list)
 
     def to_trace(self, last: int | None = None) -> ContactTrace:
         """The recorded rows (only the ``last`` ones if given) as a :class:`ContactTrace`."""
-        rows = slice(-last if last else None, None)
-        on_pad, normal, shear, valid = distribute_patch(np.array(self.on_pad[rows]), np.array(self.normal[rows]),
-                                                        np.array(self.shear[rows]), np.array(self.valid[rows]))
-        return ContactTrace(t_s=np.array(self.t_s[rows]), point_valid=valid, point_normal_force_n=normal,
+        n = len(self.t_s)
+        start = max(0, n - last) if last else 0
+        before = max(0, start - 1)  # the row before the first, for its acceleration
+        pad, obj = np.array(self.pad[before:]).reshape(-1, 10), np.array(self.obj[before:]).reshape(-1, 10)
+        accel_w = np.zeros((len(pad), 3))  # the stroke's first row has no velocity before it: 0
+        accel_w[1:] = np.diff(pad[:, 7:10], axis=0) / np.array(self.step_s[before + 1:])[:, None]
+        accel_w[:, 2] += self.gravity_mps2  # an accelerometer reads a - g
+        keep = slice(start - before, None)
+        pad, obj, accel_w = pad[keep], obj[keep], accel_w[keep]
+        rot, rot_obj = _rotation_matrices(pad[:, 3:7]), _rotation_matrices(obj[:, 3:7])
+        raw = np.zeros((len(pad), RAW_CONTACT_POINTS, 12))
+        valid = np.zeros((len(pad), RAW_CONTACT_POINTS), bool)
+        for i, rows in enumerate(self.contacts[start:]):
+            if rows:
+                raw[i, :len(rows)], valid[i, :len(rows)] = rows, True
+        to_pad = rot[:, :, :2]  # world -> pad frame (x, y): v @ to_pad
+        on_pad = np.einsum("tpj,tjk->tpk", raw[..., 0:3] - pad[:, None, 0:3], to_pad) * valid[..., None]
+        shear_w = raw[..., 4:5] * raw[..., 5:8] + raw[..., 8:9] * raw[..., 9:12]  # friction on the pad (body A)
+        on_pad, normal, shear, valid = distribute_patch(
+            on_pad, np.where(raw[..., 3] > 0.0, raw[..., 3], 0.0), np.einsum("tpj,tjk->tpk", shear_w, to_pad), valid)
+        return ContactTrace(t_s=np.array(self.t_s[start:]), point_valid=valid, point_normal_force_n=normal,
                             point_shear_force_n=shear, point_position_on_pad_m=on_pad,
-                            pad_position_on_object_m=np.array(self.on_object[rows]),
-                            pad_velocity_mps=np.array(self.velocity[rows]),
-                            pad_acceleration_mps2=np.array(self.acceleration[rows]))
+                            pad_position_on_object_m=np.einsum("tji,tj->ti", rot_obj, pad[:, 0:3] - obj[:, 0:3])[:, :2],
+                            pad_velocity_mps=np.einsum("tji,tj->ti", rot, pad[:, 7:10] - obj[:, 7:10]),
+                            pad_acceleration_mps2=np.einsum("tji,tj->ti", rot, accel_w))
 
 
 @dataclass(frozen=True)
@@ -160,6 +193,15 @@ def move_pad_above(scene: Scene, motion: ArmMotion, config: StrokeConfig) -> np.
     return hover
 
 
+@dataclass(frozen=True)
+class _LoggedStep:
+    """What the last logged physics step measured, for the control tick that follows it."""
+
+    physics_step: int
+    pad_force_n: float
+    pad_position_m: np.ndarray
+
+
 class StrokeExecution:
     """One stroke on ``obj``, advanced one control tick per :meth:`step` (the pad must already hover at the
     start, see :func:`move_pad_above`). :meth:`result` gives the :class:`StrokeResult` once :attr:`finished`."""
@@ -171,7 +213,7 @@ class StrokeExecution:
         self.max_ticks = int(max_time_s / motion.config.control_period_s)
         self.controller = StrokeController(config, scene.robot.tool_state().position_m)
         self.q = scene.robot.arm_q()
-        self.recorder = _TraceRecorder()
+        self.recorder = _TraceRecorder(gravity_mps2=scene.sim.config.gravity_mps2)
         self.forces: list[float] = []
         self.phases: list[StrokePhase] = []
         self.commanded: list[np.ndarray] = []
@@ -181,8 +223,7 @@ class StrokeExecution:
         self.slide_end: np.ndarray | None = None
         self.slide_time_s = 0.0
         self.command: StrokeCommand | None = None
-        self._prev_velocity: np.ndarray | None = None
-        self._gravity = np.array([0.0, 0.0, scene.sim.config.gravity_mps2])
+        self._last_logged: _LoggedStep | None = None
 
     @property
     def finished(self) -> bool:
@@ -198,12 +239,15 @@ class StrokeExecution:
             return True
         robot, motion = self.scene.robot, self.motion
         dt = motion.config.control_period_s
-        force = pad_normal_force_n(self.scene, self.obj)
+        if self._last_logged is not None and self._last_logged.physics_step == self.scene.sim.steps:
+            force, pad_position = self._last_logged.pad_force_n, self._last_logged.pad_position_m
+        else:  # nothing logged since the physics last stepped: measure
+            force, pad_position = pad_normal_force_n(self.scene, self.obj), robot.tool_state().position_m
         command = self.command = self.controller.step(force, dt)
         self.forces.append(force)
         self.phases.append(command.phase)
         self.commanded.append(command.position_m)
-        self.actual.append(robot.tool_state().position_m)
+        self.actual.append(pad_position)
         self.errors.append(float(np.linalg.norm(self.actual[-1] - command.position_m)))
         if command.phase is StrokePhase.SLIDE:
             if self.slide_start is None:
@@ -221,33 +265,16 @@ class StrokeExecution:
 
     def _record_physics_step(self) -> None:
         sim, robot, rec = self.scene.sim, self.scene.robot, self.recorder
-        pad = robot.tool_state()
-        rot = pad.rotation
-        obj_state = sim.link_state(self.obj.body, -1)
-        velocity_w = pad.linear_velocity_mps - obj_state.linear_velocity_mps
-        accel_w = (np.zeros(3) if self._prev_velocity is None
-                   else (pad.linear_velocity_mps - self._prev_velocity) / sim.time_step_s)
-        self._prev_velocity = pad.linear_velocity_mps
-        valid = np.zeros(RAW_CONTACT_POINTS, bool)
-        normal = np.zeros(RAW_CONTACT_POINTS)
-        shear = np.zeros((RAW_CONTACT_POINTS, 2))
-        on_pad = np.zeros((RAW_CONTACT_POINTS, 2))
-        contacts = robot.pad_contacts(self.obj.body)[:RAW_CONTACT_POINTS]
-        if contacts:
-            k = len(contacts)
-            valid[:k] = True
-            normal[:k] = [max(0.0, c.normal_force_n) for c in contacts]
-            to_pad = rot[:, :2]  # world -> pad frame (x, y): v @ to_pad
-            on_pad[:k] = (np.array([c.position_on_a_m for c in contacts]) - pad.position_m) @ to_pad
-            shear[:k] = np.array([c.shear_force_n for c in contacts]) @ to_pad  # friction on the pad (body A)
+        pad = sim.pose_velocity_row(robot.body, robot.tool_link)
+        obj = sim.pose_velocity_row(self.obj.body, -1)
+        contacts = sim.contact_rows(robot.body, self.obj.body, link_a=robot.pad_link)
         rec.t_s.append(sim.time_s)
-        rec.valid.append(valid)
-        rec.normal.append(normal)
-        rec.shear.append(shear)
-        rec.on_pad.append(on_pad)
-        rec.on_object.append((obj_state.rotation.T @ (pad.position_m - obj_state.position_m))[:2])
-        rec.velocity.append(rot.T @ velocity_w)
-        rec.acceleration.append(rot.T @ (accel_w + self._gravity))  # an accelerometer reads a - g
+        rec.step_s.append(sim.time_step_s)
+        rec.pad.append(pad)
+        rec.obj.append(obj)
+        rec.contacts.append(contacts[:RAW_CONTACT_POINTS])
+        # what the next control tick measures (the same sum as pad_normal_force_n)
+        self._last_logged = _LoggedStep(sim.steps, float(sum(c[3] for c in contacts)), np.array(pad[0:3]))
 
     def result(self) -> StrokeResult:
         command = self.command

@@ -60,3 +60,14 @@ def test_other_options_into_same_folder_refused(one_worker):
 def test_cli_unknown_instance_is_one_line(tmp_path, capsys):
     assert main(["dataset", "--out", str(tmp_path), "--categories", "plutonium", "--quiet"]) == 2
     assert "no material instance matches" in capsys.readouterr().err
+
+
+def test_bad_slide_time_refused(tmp_path, capsys):
+    with pytest.raises(ValueError, match="max_slide_s"):
+        DatasetConfig(max_slide_s=-1.0)
+    for text, message in (("soon", "--max-slide-s must be a number of seconds or 'none'"),
+                          ("0", "max_slide_s must be > 0 s")):
+        assert main(["dataset", "--out", str(tmp_path / "x"), "--max-slide-s", text]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("robotdemo: error:") and message in err and "\n" not in err
+    assert not (tmp_path / "x").exists()

@@ -5,8 +5,11 @@ import math
 import numpy as np
 import pytest
 
+import pybullet as p
+
+from perception.materials import contact_dynamics, default_catalogue, sample_material
 from robotdemo.cli import main
-from robotdemo.scene import Scene, SceneConfig
+from robotdemo.scene import ObjectSpec, Scene, SceneConfig, body_shape
 from tests.test_urdf import _step_random
 
 
@@ -36,7 +39,6 @@ def test_objects_placed_apart_on_table_outside_zones():
 
 def test_material_sets_dynamics_and_mass():
     with Scene(SceneConfig(n_objects=6, seed=1)) as scene:
-        import pybullet as p
         for obj in scene.objects:
             info = p.getDynamicsInfo(obj.body, -1, physicsClientId=scene.sim.client)
             d = obj.spec.dynamics
@@ -93,8 +95,6 @@ def test_free_steps_keep_time_and_leave_resting_objects_at_rest():
 def test_resting_objects_sleep_and_wake_when_struck(sleep_speed_mps):
     """Objects left at rest for longer than Bullet's deactivation time fall asleep (if enabled) and stay put;
     a box thrown at one wakes it and knocks it aside just as it knocks an object that never slept."""
-    import pybullet as p
-
     with Scene(SceneConfig(n_objects=1, seed=3, shapes=("box",), object_sleep_speed_mps=sleep_speed_mps)) as scene:
         obj = scene.objects[0]
         sim = scene.sim
@@ -115,3 +115,33 @@ def test_resting_objects_sleep_and_wake_when_struck(sleep_speed_mps):
         sim.advance(0.5)
         moved_m = np.linalg.norm(scene.object_pose(obj)[0][:2] - rest[:2])
         assert moved_m > 0.005, f"the struck object moved {1000 * moved_m:.1f} mm"
+
+
+def _pushed_at_the_top(clamp: bool, force_n: float = 20.0, steps: int = 300) -> tuple[float, float]:
+    """How far (m) and how much (deg) a box moves and tilts while pushed sideways at its top edge."""
+    size = (0.04, 0.04, 0.06)
+    material = sample_material(default_catalogue().instance("oak"), np.random.default_rng(0))
+    spec = ObjectSpec(name="block", shape="box", size_m=size, xy_m=(-0.2, 0.0), yaw_rad=0.0, material=material,
+                      dynamics=contact_dynamics(material, size, body_shape("box")))
+    with Scene(SceneConfig(n_objects=0, seed=0), objects=[spec]) as scene:
+        obj = scene.objects[0]
+        if clamp:
+            scene.sim.clamp_in_place(obj.body)
+        start, orientation = scene.object_pose(obj)
+        for _ in range(steps):
+            top, _ = scene.object_pose(obj)
+            p.applyExternalForce(obj.body, -1, [force_n, 0.0, 0.0], (top + [0.0, 0.0, 0.03]).tolist(),
+                                 p.WORLD_FRAME, physicsClientId=scene.sim.client)
+            scene.sim.step()
+        end, orientation_end = scene.object_pose(obj)
+        tilt = np.degrees(2 * np.arccos(min(1.0, abs(float(np.dot(orientation, orientation_end))))))
+        return float(np.linalg.norm(end - start)), float(tilt)
+
+
+def test_clamped_sample_holds_under_a_push_that_moves_it_when_free():
+    """The data set's fixture: a clamped block stays put (under 0.5 mm, 0.5 deg) under a 20 N push at its top
+    edge that slides and tips the same block left free."""
+    free_moved, free_tilt = _pushed_at_the_top(clamp=False)
+    clamped_moved, clamped_tilt = _pushed_at_the_top(clamp=True)
+    assert free_moved > 0.01 or free_tilt > 5.0
+    assert clamped_moved < 5e-4 and clamped_tilt < 0.5

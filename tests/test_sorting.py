@@ -13,7 +13,7 @@ from perception.materials import default_catalogue
 from perception.streams import MODALITIES, StrokeRecord
 from robotdemo.classifier import Classification, average_classifications, decide_zone
 from robotdemo.scene import Scene, SceneConfig
-from robotdemo.sorting import FaultInjector, SortingConfig, SortingMachine, State
+from robotdemo.sorting import FaultInjector, RestingGeometry, SortingConfig, SortingMachine, State, plan_stroke
 
 CATEGORIES = default_catalogue().categories
 PER_OBJECT = [State.APPROACH, State.STROKE, State.CLASSIFY, State.PRE_GRASP, State.GRASP, State.LIFT,
@@ -294,3 +294,23 @@ def test_slippery_heavy_block_is_squeezed_harder_by_the_friction_the_pad_measure
             efforts[reference] = scene.robot.gripper_effort_nm
     assert efforts[0.0] > 1.5  # the mass-based cap is above the robot's default 1.5 N m already
     assert efforts[0.5] / efforts[0.0] == pytest.approx(0.5 / spec.material.friction_kinetic, rel=0.05)
+
+
+def test_max_slide_time_cuts_slow_strokes_short():
+    """With ``stroke_max_slide_s`` a slow stroke is a short one: its slide lasts at most that long, or it is the
+    controller's shortest (20 mm). The draws are the same with and without the cut."""
+    geometry = RestingGeometry(center_m=np.array([-0.2, 0.0, 0.01]), height_m=0.02, long_axis=np.array([1.0, 0.0, 0.0]),
+                               short_axis=np.array([0.0, 1.0, 0.0]), long_m=0.14, short_m=0.08, round_top=False,
+                               curved_top=False)
+    ranges = dict(stroke_speed_mps=(0.005, 0.05), stroke_length_m=(0.02, 0.06))
+    cut, uncut = SortingConfig(stroke_max_slide_s=1.0, **ranges), SortingConfig(**ranges)
+    shortened = 0
+    for seed in range(40):
+        a = plan_stroke(geometry, cut, np.random.default_rng(seed))
+        b = plan_stroke(geometry, uncut, np.random.default_rng(seed))
+        assert (a.speed_mps, a.target_force_n, a.direction_rad) == (b.speed_mps, b.target_force_n, b.direction_rad)
+        assert a.length_m == pytest.approx(min(b.length_m, max(0.02, b.speed_mps * 1.0)))
+        shortened += a.length_m < b.length_m - 1e-9
+    assert shortened >= 10  # slow draws were cut
+    with pytest.raises(ValueError, match="stroke_max_slide_s"):
+        SortingConfig(stroke_max_slide_s=0.0)
