@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import typing
 from dataclasses import dataclass
@@ -52,6 +53,8 @@ class Checkpoint:
         norm_stats: feature normalisation fitted on the training split.
         class_names: class index -> name.
         meta: free-form training record (command, seed, ...).
+        temperature: divides the logits before the softmax when probabilities are wanted
+            (:mod:`perception.calibration`, fitted on the validation split; 1.0 when the checkpoint has none).
     """
 
     model_name: str
@@ -61,6 +64,7 @@ class Checkpoint:
     norm_stats: NormStats
     class_names: tuple[str, ...]
     meta: Mapping[str, Any]
+    temperature: float = 1.0
 
 
 def config_to_dict(config: Any) -> dict[str, Any]:
@@ -211,5 +215,20 @@ def load_checkpoint(directory: str | os.PathLike, device: str | torch.device = "
     _check_state(weights_path, state, model.state_dict())
     model.load_state_dict(state, strict=True)
     model.to(device).eval()
+    temperature = record.get("temperature", 1.0)
+    if not (isinstance(temperature, (int, float)) and math.isfinite(temperature) and temperature > 0):
+        raise CheckpointError(config_path, f"temperature must be a positive number, got {temperature!r}")
     return Checkpoint(model_name=name, model_config=model_config, model=model, feature_config=feature_config,
-                      norm_stats=norm_stats, class_names=class_names, meta=record.get("meta", {}))
+                      norm_stats=norm_stats, class_names=class_names, meta=record.get("meta", {}),
+                      temperature=float(temperature))
+
+
+def set_temperature(directory: str | os.PathLike, temperature: float) -> None:
+    """Store a fitted temperature in ``directory/config.json`` (atomically; the weights are untouched)."""
+    if not (math.isfinite(temperature) and temperature > 0):
+        raise ValueError(f"temperature must be a positive number, got {temperature}")
+    path = Path(directory) / CONFIG_FILE
+    record = _read_config(path)
+    record["temperature"] = float(temperature)
+    text = json.dumps(record, indent=2, sort_keys=True)
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))

@@ -36,7 +36,8 @@ from tqdm.auto import tqdm
 
 from perception.atomic import atomic_write
 from perception.baselines import MODEL_REGISTRY, build_model
-from perception.checkpoint import config_from_dict, config_to_dict, load_checkpoint, save_checkpoint
+from perception.calibration import fit_temperature, nll
+from perception.checkpoint import config_from_dict, config_to_dict, load_checkpoint, save_checkpoint, set_temperature
 from perception.dataset import TASKS, labels_of
 from perception.features import (FeatureBatch, FeatureConfig, NormStats, StrokeFeatures, collate, feature_dims,
                                  featurize, fit_norm_stats, keep_modalities, normalize)
@@ -686,6 +687,12 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
                    provenance={"command": command, "data_dir": str(data_dir),
                                "data_manifest_sha256": data.manifest_sha256, "fold": fold})
     ckpt = load_checkpoint(result.checkpoint_dir, device=resolve_device(config.device))
+    # Temperature scaling on the validation strokes: the robot's confidence threshold then means what it says.
+    val_preds = predict(ckpt.model, featurize_records(pick(val_idx), ckpt.feature_config, progress, "featurize val"),
+                        feature_dims(ckpt.feature_config), stats=ckpt.norm_stats, device=resolve_device(config.device))
+    y_val = np.array([names.index(l) for l in labels_of(pick(val_idx), config.task)])
+    temperature = fit_temperature(val_preds.logits, y_val)
+    set_temperature(result.checkpoint_dir, temperature)
     feats = featurize_records(pick(test_idx), ckpt.feature_config, progress, "featurize test")
     preds = predict(ckpt.model, feats, feature_dims(ckpt.feature_config), stats=ckpt.norm_stats,
                     device=resolve_device(config.device))
@@ -695,6 +702,8 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
                "n_train": len(train_idx), "n_val": len(val_idx), "n_test": len(test_idx),
                "split_by_object": config.split_by_object,
                "best_epoch": result.best_epoch, "best_val_accuracy": result.best_val_accuracy,
+               "temperature": temperature, "val_nll": nll(val_preds.logits, y_val),
+               "val_nll_calibrated": nll(val_preds.logits, y_val, temperature),
                "checkpoint_dir": str(result.checkpoint_dir), "data_manifest_sha256": data.manifest_sha256}
     Path(out_dir, "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")
     return metrics

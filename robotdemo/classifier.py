@@ -168,7 +168,7 @@ class TouchFormerClassifier:
         ck = self.checkpoint
         batch = collate([featurize(record, ck.feature_config)], self.dims, stats=ck.norm_stats)
         out = self.model(batch)
-        p_class = torch.softmax(out.logits[0].double(), dim=-1).numpy()  # (K,)
+        p_class = torch.softmax(out.logits[0].double() / ck.temperature, dim=-1).numpy()  # (K,), calibrated
         probs = {c: 0.0 for c in self.categories}
         for k, category in enumerate(self.class_category):
             probs[category] += float(p_class[k])

@@ -11,7 +11,8 @@ import safetensors.torch
 import torch
 
 from perception.baselines import MODEL_REGISTRY, build_model
-from perception.checkpoint import (CONFIG_FILE, WEIGHTS_FILE, CheckpointError, load_checkpoint, save_checkpoint)
+from perception.checkpoint import (CONFIG_FILE, WEIGHTS_FILE, CheckpointError, load_checkpoint, save_checkpoint,
+                                  set_temperature)
 from perception.features import FeatureConfig, feature_dims, featurize, fit_norm_stats
 from perception.streams import MODALITIES
 from tests.test_baselines import TINY
@@ -121,6 +122,24 @@ def test_config_json_problems(tmp_path):
     path.write_text(original)
     _edit_config(tmp_path, lambda r: r["norm_stats"]["mean"].update(accel=[0.0]))
     _expect_error(tmp_path, CONFIG_FILE, "norm_stats for accel")
+    path.write_text(original)
+    _edit_config(tmp_path, lambda r: r.update(temperature=-1.0))
+    _expect_error(tmp_path, CONFIG_FILE, "temperature must be a positive number")
+
+
+def test_temperature_is_stored_beside_the_weights(tmp_path):
+    """A checkpoint without a temperature loads with 1.0; a fitted one is stored in config.json, the weights
+    file untouched, and a bad one is refused before anything is written."""
+    _save(tmp_path)
+    weights = (tmp_path / WEIGHTS_FILE).read_bytes()
+    assert load_checkpoint(tmp_path).temperature == 1.0
+    set_temperature(tmp_path, 2.5)
+    assert load_checkpoint(tmp_path).temperature == 2.5
+    assert (tmp_path / WEIGHTS_FILE).read_bytes() == weights
+    config = (tmp_path / CONFIG_FILE).read_text()
+    with pytest.raises(ValueError, match="positive"):
+        set_temperature(tmp_path, float("nan"))
+    assert (tmp_path / CONFIG_FILE).read_text() == config
 
 
 def test_save_checks_config_type(tmp_path):

@@ -66,6 +66,22 @@ def test_classifier_from_checkpoint_reports_gate_weights(tiny_checkpoint):
     assert dropped.gate_weights["accel"] == 0.0 and "accel" not in dropped.modalities_present
 
 
+def test_classifier_applies_the_checkpoints_temperature(tiny_checkpoint, tmp_path):
+    """A calibrated checkpoint (temperature 4: logit 8 -> 2) gives the same category, less sure: what the
+    robot's re-stroke threshold is compared with. The probabilities are softmax(logits / T)."""
+    import shutil
+
+    from perception.checkpoint import set_temperature
+
+    calibrated = shutil.copytree(tiny_checkpoint, tmp_path / "calibrated")
+    set_temperature(calibrated, 4.0)
+    sure = TouchFormerClassifier.from_checkpoint(tiny_checkpoint)(_record())
+    soft = TouchFormerClassifier.from_checkpoint(calibrated)(_record())
+    assert soft.category == sure.category == "rubber"
+    assert sure.confidence == pytest.approx(np.exp(8) / (np.exp(8) + len(CATEGORIES) - 1), rel=1e-3)
+    assert soft.confidence == pytest.approx(np.exp(2) / (np.exp(2) + len(CATEGORIES) - 1), rel=1e-3)
+
+
 def test_demo_runs_end_to_end_and_writes_the_report(tiny_checkpoint, tmp_path, capsys):
     report_path = tmp_path / "out" / "report.json"
     rc = main(["demo", "--objects", "1", "--seed", "0", "--env", "fire", "--checkpoint", str(tiny_checkpoint),

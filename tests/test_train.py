@@ -277,6 +277,9 @@ def test_train_command_usmc(tmp_path):
     assert metrics["n_train"] + metrics["n_val"] + metrics["n_test"] == len(recs)
     assert 0.0 <= metrics["test_accuracy"] <= 1.0 and len(metrics["data_manifest_sha256"]) == 64
     assert json.loads((tmp_path / "run" / "metrics.json").read_text())["fold"] == 1
+    # the temperature fitted on the validation strokes is stored with the checkpoint, and lowers their NLL
+    assert load_checkpoint(metrics["checkpoint_dir"]).temperature == pytest.approx(metrics["temperature"])
+    assert metrics["val_nll_calibrated"] <= metrics["val_nll"] + 1e-9
 
 
 @pytest.mark.parametrize("task", ["ssmc", "fine"])
