@@ -134,7 +134,8 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
             obj = scene.objects[0]
             # Clamped where it came to rest, as a lab fixes a sample for stroking: light, tall objects tipped
             # over their leading edge under the pad's friction, wedging the pad (29 % of stroke attempts
-            # failed, all on boxes and cylinders taller than half their length; README "recording strokes").
+            # failed, all on boxes and cylinders taller than half their length; README, "How the recording
+            # got faster").
             scene.sim.clamp_in_place(obj.body)
             motion = ArmMotion(scene.robot)
             scene.robot.command_gripper(GripperPosture.stroke())
