@@ -282,7 +282,9 @@ class Simulator:
         states = p.getJointStates(body, list(joints), physicsClientId=self.client)
         return np.array([s[1] for s in states])
 
-    def link_state(self, body: int, link: int) -> LinkState:
+    def _link_state_tuples(self, body: int, link: int) -> tuple[tuple[float, ...], ...]:
+        """PyBullet's position, orientation (xyzw), linear and angular velocity of a link frame (``link < 0``:
+        the base), checked finite."""
         if link < 0:
             pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
             lin, ang = p.getBaseVelocity(body, physicsClientId=self.client)
@@ -293,6 +295,10 @@ class Simulator:
         if not all(map(math.isfinite, (*pos, *lin))):  # per value: ~10x cheaper than numpy on 6 numbers
             raise SimulationError(f"simulation diverged: state of body {body} link {link} became NaN or inf "
                                   f"at t={self.time_s:.3f} s")
+        return pos, orn, lin, ang
+
+    def link_state(self, body: int, link: int) -> LinkState:
+        pos, orn, lin, ang = self._link_state_tuples(body, link)
         return LinkState(np.array(pos), np.array(orn), np.array(lin), np.array(ang))
 
     def base_pose(self, body: int) -> tuple[np.ndarray, np.ndarray]:
@@ -326,18 +332,8 @@ class Simulator:
         """A link frame's world position (3, m), orientation (4, xyzw) and linear velocity (3, m/s) as one flat
         tuple of floats: :meth:`link_state` without the arrays, for loops that log every physics step (building
         the arrays and records cost a stroke's recording as much as a tenth of the physics)."""
-        if link < 0:
-            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
-            lin, _ = p.getBaseVelocity(body, physicsClientId=self.client)
-        else:
-            st = p.getLinkState(body, link, computeLinkVelocity=1, computeForwardKinematics=1,
-                                physicsClientId=self.client)
-            pos, orn, lin = st[4], st[5], st[6]
-        row = (*pos, *orn, *lin)
-        if not all(map(math.isfinite, row)):
-            raise SimulationError(f"simulation diverged: state of body {body} link {link} became NaN or inf "
-                                  f"at t={self.time_s:.3f} s")
-        return row
+        pos, orn, lin, _ = self._link_state_tuples(body, link)
+        return (*pos, *orn, *lin)
 
     def contact_rows(self, body_a: int, body_b: int, link_a: int) -> list[tuple[float, ...]]:
         """Contact points of the last step between one link of ``body_a`` and ``body_b`` as flat tuples of
