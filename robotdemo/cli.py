@@ -52,6 +52,8 @@ def _cmd_dataset(args: argparse.Namespace) -> int:
     objects = {} if args.objects_per_instance is None else {"objects_per_instance": args.objects_per_instance}
     if args.max_slide_s is not None:
         objects["max_slide_s"] = _seconds_or_none(args.max_slide_s, "--max-slide-s")
+    if args.solver_iterations is not None:
+        objects["solver_iterations"] = args.solver_iterations
     config = DatasetConfig(strokes_per_instance=args.strokes_per_instance, **objects, seed=args.seed, env=args.env,
                            categories=tuple(args.categories.split(",")) if args.categories else None)
     manifest = generate_dataset(args.out, config, workers=args.workers, progress=not args.quiet)
@@ -170,7 +172,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         result = run_classifier_benchmark(args.checkpoint or DEFAULT_CHECKPOINT, args.data)
     elif args.what == "stroke":
         from robotdemo.benchmarks.stroke_bench import run_stroke_benchmark
-        result = run_stroke_benchmark()
+        result = run_stroke_benchmark(clamped=args.clamped, solver_iterations=_counts(args.solver_iterations))
     elif args.what == "emulation":
         from robotdemo.benchmarks.emulation_bench import run_emulation_benchmark
         result = run_emulation_benchmark(n_strokes=args.n or 6, seed=args.seed)
@@ -178,6 +180,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise RobotDemoError(f"unknown benchmark {args.what!r}")
     print(json.dumps(result, indent=2) if args.json else _format_flat(result))
     return 0
+
+
+def _counts(text: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise ValueError(f"--solver-iterations must be whole numbers separated by commas, got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise ValueError(f"--solver-iterations must be >= 1, got {text!r}")
+    return counts
 
 
 def _format_flat(result: dict, prefix: str = "") -> str:
@@ -226,6 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--max-slide-s", default=None, metavar="S",
                          help="cut each drawn slide to what its speed covers in S seconds, not below 20 mm "
                               "(default 0.8; 'none': the drawn length stands)")
+    dataset.add_argument("--solver-iterations", type=int, default=None, metavar="N",
+                         help="physics solver iterations per step while recording (default 50, DatasetConfig's)")
     dataset.add_argument("--quiet", action="store_true", help="no progress bar")
     dataset.set_defaults(func=_cmd_dataset)
 
@@ -304,6 +318,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--stroke-s", type=float, default=1.0,
                        help="inference: length of the synthetic stroke, s (the data sets' median is about 4.4)")
+    bench.add_argument("--clamped", action="store_true",
+                       help="stroke: on the data set's fixture (the object clamped and free of the table)")
+    bench.add_argument("--solver-iterations", default="100", metavar="N[,N...]",
+                       help="stroke: the physics solver's iterations per step, one run per count (default 100)")
     bench.add_argument("--json", action="store_true")
     bench.set_defaults(func=_cmd_bench)
     return parser

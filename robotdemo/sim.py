@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -39,8 +39,9 @@ class SimConfig:
     Attributes:
         time_step_s: physics step; 1 ms keeps finger contacts and the tactile pad stable.
         solver_iterations: constraint solver iterations per step (contact-rich sliding needs many: at 50 or 30
-            a stroke on a stiff pine block held its median force but spiked to 4.7 N or 17 N against a 2 N
-            target, where 100 keeps it within +-20 %; scratch, the stroke test's own case).
+            a stroke on a stiff pine block resting on the table held its median force but spiked to 4.7 N or
+            17 N against a 2 N target, where 100 keeps it within +-20 %; scratch, the stroke test's own case).
+            A clamped sample free of the table converges in fewer (see ``DatasetConfig.solver_iterations``).
         Friction uses Bullet's cone model: without it a step in contact costs half (0.34 vs 0.67 ms) but the
         pad slid over the objects with almost no friction reported (1e-3 N against 1.3 N expected).
         solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
@@ -68,6 +69,14 @@ class SimConfig:
     friction_erp: float = 0.2
     contact_slop_m: float = 0.0002
     gui: bool = False
+
+    def with_solver_iterations(self, iterations: int) -> "SimConfig":
+        """This configuration with every step mode iterating ``iterations`` times per step."""
+        if iterations < 1:
+            raise ValueError(f"solver iterations must be >= 1, got {iterations}")
+        return replace(self, solver_iterations=iterations,
+                       free_step=replace(self.free_step, solver_iterations=iterations),
+                       carry_step=replace(self.carry_step, solver_iterations=iterations))
 
 
 @dataclass(frozen=True)
@@ -397,12 +406,21 @@ class Simulator:
 
     def clamp_in_place(self, body: int, max_force_n: float = 1e4) -> int:
         """Hold ``body`` where it is now with a fixed joint to the world (a fixture clamping a sample to the
-        table: the base stays put under forces up to ``max_force_n``). Returns the constraint's id."""
+        table: the base stays put under forces up to ``max_force_n``). Returns the constraint's id. Its contacts
+        with what it rests on stay; :meth:`robotdemo.scene.Scene.clamp` also switches those off."""
         position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
         constraint = p.createConstraint(body, -1, -1, -1, p.JOINT_FIXED, [0, 0, 0], [0, 0, 0], position,
                                         childFrameOrientation=orientation, physicsClientId=self.client)
         p.changeConstraint(constraint, maxForce=max_force_n, physicsClientId=self.client)
         return constraint
+
+    def disable_collisions(self, body_a: int, body_b: int) -> None:
+        """No contact between any link (base included) of ``body_a`` and any of ``body_b`` from now on."""
+        links_a = range(-1, p.getNumJoints(body_a, physicsClientId=self.client))
+        links_b = range(-1, p.getNumJoints(body_b, physicsClientId=self.client))
+        for link_a in links_a:
+            for link_b in links_b:
+                p.setCollisionFilterPair(body_a, body_b, link_a, link_b, 0, physicsClientId=self.client)
 
     def remove_body(self, body: int) -> None:
         p.removeBody(body, physicsClientId=self.client)

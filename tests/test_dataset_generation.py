@@ -71,3 +71,12 @@ def test_bad_slide_time_refused(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("robotdemo: error:") and message in err and "\n" not in err
     assert not (tmp_path / "x").exists()
+
+
+def test_bad_solver_iterations_refused(tmp_path, capsys):
+    with pytest.raises(ValueError, match="solver_iterations must be >= 1"):
+        DatasetConfig(solver_iterations=0)
+    assert main(["dataset", "--out", str(tmp_path / "x"), "--solver-iterations", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("robotdemo: error:") and "solver_iterations must be >= 1" in err and "\n" not in err
+    assert not (tmp_path / "x").exists()

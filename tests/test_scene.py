@@ -10,6 +10,7 @@ import pybullet as p
 from perception.materials import contact_dynamics, default_catalogue, sample_material
 from robotdemo.cli import main
 from robotdemo.scene import ObjectSpec, Scene, SceneConfig, body_shape
+from robotdemo.sim import SimConfig
 from tests.test_urdf import _step_random
 
 
@@ -126,7 +127,7 @@ def _pushed_at_the_top(clamp: bool, force_n: float = 20.0, steps: int = 300) -> 
     with Scene(SceneConfig(n_objects=0, seed=0), objects=[spec]) as scene:
         obj = scene.objects[0]
         if clamp:
-            scene.sim.clamp_in_place(obj.body)
+            scene.clamp(obj)
         start, orientation = scene.object_pose(obj)
         for _ in range(steps):
             top, _ = scene.object_pose(obj)
@@ -145,3 +146,37 @@ def test_clamped_sample_holds_under_a_push_that_moves_it_when_free():
     clamped_moved, clamped_tilt = _pushed_at_the_top(clamp=True)
     assert free_moved > 0.01 or free_tilt > 5.0
     assert clamped_moved < 5e-4 and clamped_tilt < 0.5
+
+
+def test_clamped_sample_rests_on_the_clamp_alone():
+    """``Scene.clamp``: the table, floor and zones no longer touch the sample, which neither sinks nor moves
+    under gravity for a second (the fixed joint carries it). The robot still strokes it: see
+    test_stroking's test of the data set's fixture."""
+    material = sample_material(default_catalogue().instance("granite"), np.random.default_rng(1))
+    size = (0.05, 0.05, 0.04)
+    spec = ObjectSpec(name="block", shape="box", size_m=size, xy_m=(-0.2, 0.0), yaw_rad=0.3, material=material,
+                      dynamics=contact_dynamics(material, size, body_shape("box")))
+    with Scene(SceneConfig(n_objects=0, seed=0), objects=[spec]) as scene:
+        obj = scene.objects[0]
+        assert p.getContactPoints(scene.table, obj.body, physicsClientId=scene.sim.client)
+        start, _ = scene.object_pose(obj)
+        scene.clamp(obj)
+        scene.sim.advance(1.0)
+        end, _ = scene.object_pose(obj)
+        client = scene.sim.client
+        for body in (scene.floor, scene.table, *scene.zone_bodies):
+            assert not p.getContactPoints(body, obj.body, physicsClientId=client)
+        assert np.linalg.norm(end - start) < 1e-4
+
+
+def test_solver_iterations_set_for_every_step_mode():
+    config = SimConfig().with_solver_iterations(40)
+    assert config.solver_iterations == config.free_step.solver_iterations == config.carry_step.solver_iterations == 40
+    assert config.free_step.time_step_s == SimConfig().free_step.time_step_s
+    assert config.carry_step.cone_friction is False
+    with pytest.raises(ValueError, match="solver iterations must be >= 1"):
+        SimConfig().with_solver_iterations(0)
+    with Scene(SceneConfig(n_objects=0, seed=0, sim=config)) as scene:
+        for mode in ("fine", "free", "carry"):
+            scene.sim.use_step_mode(mode)
+            assert p.getPhysicsEngineParameters(physicsClientId=scene.sim.client)["numSolverIterations"] == 40

@@ -4,43 +4,89 @@ import numpy as np
 import pytest
 
 from controllers.stroke import StrokeConfig, StrokePhase
+from robotdemo.dataset import DatasetConfig
 from robotdemo.motion import ArmMotion
 from robotdemo.scene import Scene, SceneConfig
-from robotdemo.stroking import cruise_speed_mps, move_pad_above, run_stroke, top_surface_point
+from robotdemo.sim import SimConfig
+from robotdemo.stroking import StrokeExecution, cruise_speed_mps, move_pad_above, run_stroke, top_surface_point
 
 # (category, seed, target force N): rubber is the soft surface (contact stiffness ~5e4 N/m), cast iron and
 # pine the hard ones (~3e5 N/m, the top of what the simulation takes).
 CASES = [("rubber", 1, 1.0), ("metal", 1, 4.0), ("wood", 0, 2.0)]
 
 
+def _stroke_holds_force_and_friction(scene: Scene, force_n: float) -> None:
+    """Stroke the scene's only object 30 mm at 20 mm/s; the settled slide force within +-20 % of ``force_n``,
+    the slide's length and speed within 10 %, and shear / normal the material's kinetic friction within 15 %."""
+    obj = scene.objects[0]
+    motion = ArmMotion(scene.robot)
+    config = StrokeConfig(target_force_n=force_n, speed_mps=0.02, length_m=0.03, direction_rad=0.0,
+                          start_point_m=tuple(top_surface_point(scene, obj, (-0.015, 0.0))))
+    move_pad_above(scene, motion, config)
+    result = run_stroke(scene, motion, obj, config)
+    assert result.success, result.failure_reason
+    sliding = np.array([phase is StrokePhase.SLIDE for phase in result.phase_log])
+    force = result.force_log_n[sliding]
+    settled = force[int(0.1 / motion.config.control_period_s):]
+    assert np.all(np.abs(settled - force_n) <= 0.2 * force_n), (settled.min(), settled.max())
+    distance = np.linalg.norm(result.slide_end_m - result.slide_start_m)
+    assert distance == pytest.approx(config.length_m, rel=0.1)
+    assert cruise_speed_mps(result, motion.config.control_period_s) == pytest.approx(config.speed_mps, rel=0.1)
+    assert np.median(result.tracking_error_m) < 0.5e-3
+    # friction on the pad opposes its sliding, and shear / normal is the material's kinetic friction
+    trace = result.trace
+    normal, shear = trace.total_normal_force_n(), trace.total_shear_force_n()
+    steady = (normal > 0.5 * force_n) & (trace.pad_velocity_mps[:, 0] > 0.75 * config.speed_mps)
+    assert steady.sum() > 100
+    assert np.all(shear[steady, 0] < 0)
+    ratio = np.median(np.linalg.norm(shear[steady], axis=1) / normal[steady])
+    assert ratio == pytest.approx(obj.spec.material.friction_kinetic, rel=0.15)
+
+
 @pytest.mark.parametrize("category,seed,force_n", CASES)
 def test_press_holds_force_and_slide_covers_distance_at_speed(category, seed, force_n):
     with Scene(SceneConfig(n_objects=1, seed=seed, categories=(category,), shapes=("box",))) as scene:
         obj = scene.objects[0]
-        motion = ArmMotion(scene.robot)
-        config = StrokeConfig(target_force_n=force_n, speed_mps=0.02, length_m=0.03, direction_rad=0.0,
-                              start_point_m=tuple(top_surface_point(scene, obj, (-0.015, 0.0))))
-        move_pad_above(scene, motion, config)
-        result = run_stroke(scene, motion, obj, config)
-        assert result.success, result.failure_reason
-        sliding = np.array([phase is StrokePhase.SLIDE for phase in result.phase_log])
-        force = result.force_log_n[sliding]
-        settled = force[int(0.1 / motion.config.control_period_s):]
-        assert np.all(np.abs(settled - force_n) <= 0.2 * force_n), (settled.min(), settled.max())
-        distance = np.linalg.norm(result.slide_end_m - result.slide_start_m)
-        assert distance == pytest.approx(config.length_m, rel=0.1)
-        assert cruise_speed_mps(result, motion.config.control_period_s) == pytest.approx(config.speed_mps, rel=0.1)
-        assert np.median(result.tracking_error_m) < 0.5e-3
-        # friction on the pad opposes its sliding, and shear / normal is the material's kinetic friction
-        trace = result.trace
-        normal, shear = trace.total_normal_force_n(), trace.total_shear_force_n()
-        steady = (normal > 0.5 * force_n) & (trace.pad_velocity_mps[:, 0] > 0.75 * config.speed_mps)
-        assert steady.sum() > 100
-        assert np.all(shear[steady, 0] < 0)
-        ratio = np.median(np.linalg.norm(shear[steady], axis=1) / normal[steady])
-        assert ratio == pytest.approx(obj.spec.material.friction_kinetic, rel=0.15)
+        _stroke_holds_force_and_friction(scene, force_n)
         # the object stayed put: friction on the anti-slip table held it while the pad dragged across
         assert np.linalg.norm(scene.object_pose(obj)[0][:2] - np.array(obj.spec.xy_m)) < 0.003
+
+
+@pytest.mark.parametrize("category,seed,force_n", CASES)
+def test_data_set_fixture_holds_force_with_fewer_solver_iterations(category, seed, force_n):
+    """The data set's recording: the sample clamped and free of the table, the solver at
+    ``DatasetConfig().solver_iterations``; the same cases hold the same bounds."""
+    sim = SimConfig().with_solver_iterations(DatasetConfig().solver_iterations)
+    with Scene(SceneConfig(n_objects=1, seed=seed, categories=(category,), shapes=("box",), sim=sim)) as scene:
+        scene.clamp(scene.objects[0])
+        start, _ = scene.object_pose(scene.objects[0])
+        _stroke_holds_force_and_friction(scene, force_n)
+        assert np.linalg.norm(scene.object_pose(scene.objects[0])[0] - start) < 1e-4
+
+
+def test_recording_ends_once_the_lift_has_cleared_the_surface():
+    """The trace ends ``release_record_s`` after the pad last touched the object; the lift goes on, unrecorded
+    at the coarse step, to the hover height."""
+    with Scene(SceneConfig(n_objects=1, seed=1, categories=("metal",), shapes=("box",))) as scene:
+        obj = scene.objects[0]
+        motion = ArmMotion(scene.robot)
+        config = StrokeConfig(target_force_n=2.0, speed_mps=0.02, length_m=0.02, approach_height_m=0.006,
+                              start_point_m=tuple(top_surface_point(scene, obj, (-0.01, 0.0))))
+        move_pad_above(scene, motion, config)
+        execution = StrokeExecution(scene, motion, obj, config, release_record_s=0.05)
+        while not execution.step():
+            assert execution.recording or execution.phase is StrokePhase.LIFT
+        result = execution.result()
+        assert result.success, result.failure_reason
+        t_s, touching = result.trace.t_s, result.trace.point_valid.any(axis=1)
+        assert touching.any() and not touching[-10:].any()
+        assert t_s[-1] - t_s[touching][-1] == pytest.approx(0.05, abs=motion.config.control_period_s + 1e-9)
+        assert not execution.recording and scene.sim.step_mode == "free"
+        assert scene.sim.time_s > t_s[-1] + 0.1  # the lift went on
+        height = scene.robot.tool_state().position_m[2] - config.start_point_m[2]
+        assert height == pytest.approx(config.approach_height_m, abs=1e-3)
+    with pytest.raises(ValueError, match="release_record_s must be > 0 s"):
+        StrokeExecution(scene, motion, obj, config, release_record_s=0.0)
 
 
 def test_normal_force_rises_with_pressing():
@@ -86,6 +132,16 @@ def test_stroke_benchmark_reports_each_case(monkeypatch):
     row = stroke_bench.run_stroke_benchmark()["strokes"][0]
     assert row["success"] and row["tracking_error_median_mm"] < 0.5
     assert 0.8 <= row["slide_force_min_n"] <= row["slide_force_max_n"] <= 1.2
+    assert row["solver_iterations"] == 100 and not row["clamped"] and 0.8 <= row["slide_force_worst_ratio"] <= 1.2
+
+
+def test_stroke_benchmark_solver_iterations_option(capsys):
+    from robotdemo.cli import main
+
+    for text in ("many", "0", "75,-1"):
+        assert main(["bench", "stroke", "--clamped", "--solver-iterations", text]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--solver-iterations must be" in err and "\n" not in err
 
 
 def test_force_settles_finely_on_a_light_stiff_block():
