@@ -80,3 +80,27 @@ def test_bad_solver_iterations_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("robotdemo: error:") and "solver_iterations must be >= 1" in err and "\n" not in err
     assert not (tmp_path / "x").exists()
+
+
+def test_shard_strokes_the_clamped_sample_at_the_configured_iterations(monkeypatch):
+    """``record_shard`` builds its scene at ``DatasetConfig.solver_iterations`` and clamps the sample free of
+    the table (``Scene.clamp``) before stroking it."""
+    import pybullet as p
+
+    import robotdemo.dataset as dataset
+    from robotdemo.scene import Scene
+
+    seen = []
+    clamp = Scene.clamp
+
+    def spy(scene, obj):
+        clamp(scene, obj)
+        seen.append((scene.config.sim.solver_iterations,
+                     p.getPhysicsEngineParameters(physicsClientId=scene.sim.client)["numSolverIterations"],
+                     len(p.getContactPoints(scene.table, obj.body, physicsClientId=scene.sim.client))))
+
+    monkeypatch.setattr(Scene, "clamp", spy)
+    config = DatasetConfig(**{**FAST, "instances": ("steel",), "strokes_per_instance": 1, "solver_iterations": 60})
+    records = dataset.record_shard(dataset.plan_jobs(config, dataset.default_catalogue())[0], config)
+    assert len(records) == 1 and seen == [(60, 60, 0)]
+    assert DatasetConfig().solver_iterations == 75
