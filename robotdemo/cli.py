@@ -239,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help="cut each drawn slide to what its speed covers in S seconds, not below 20 mm "
                               "(default 0.8; 'none': the drawn length stands)")
     dataset.add_argument("--solver-iterations", type=int, default=None, metavar="N",
-                         help="physics solver iterations per step while recording (default 50, DatasetConfig's)")
+                         help="physics solver iterations per step while recording (default 75, DatasetConfig's)")
     dataset.add_argument("--quiet", action="store_true", help="no progress bar")
     dataset.set_defaults(func=_cmd_dataset)
 

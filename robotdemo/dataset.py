@@ -37,8 +37,8 @@ from perception.tactile import ENVIRONMENTS, emulate_stroke
 from robotdemo.errors import RobotDemoError
 from robotdemo.motion import ArmMotion, UnreachableError
 from robotdemo.robot import GripperPosture
-from robotdemo.sim import SimConfig
 from robotdemo.scene import SHAPES, ObjectSpec, Scene, SceneConfig, body_shape, draw_object_size
+from robotdemo.sim import SimConfig
 from robotdemo.sorting import SortingConfig, plan_stroke, resting_geometry
 from robotdemo.stroking import StrokeExecution, move_pad_above
 

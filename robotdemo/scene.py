@@ -226,7 +226,7 @@ class Scene:
         """Fix ``obj`` where it rests, as a lab clamps a sample for stroking: a fixed joint to the world
         (:meth:`robotdemo.sim.Simulator.clamp_in_place`), and no more contact with the table, floor and zones,
         which would only push against the clamp. Those contacts cost the solver a fifth of a stroke step
-        (0.41 vs 0.32 ms, scratch probe during a slide on oak), and with them the solver needed 100 iterations
+        (0.41 vs 0.32 ms, scratch probe during a slide on steel), and with them the solver needed 100 iterations
         to hold the pad force (see ``DatasetConfig.solver_iterations``). Only the robot touches it afterwards."""
         self.sim.clamp_in_place(obj.body)
         for body in (self.floor, self.table, *self.zone_bodies):

@@ -208,7 +208,7 @@ class StrokeExecution:
 
     Every physics step is recorded at the fine step until the pad, lifting, has touched nothing for
     ``release_record_s``: the recording then ends and the rest of the lift runs at the coarse ``"free"`` step,
-    as the move to the hover point did. The whole lift was a sixth of a stroke's physics (0.37 of 2.5 s at
+    as the move to the hover point did. The whole lift was 15 % of a stroke's physics (0.37 of 2.5 s at
     the fine step, scratch, the data set's draws) with the pad in the air for all but its first tens of ms.
     """
 

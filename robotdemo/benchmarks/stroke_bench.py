@@ -1,5 +1,5 @@
 """How well strokes executed in PyBullet track their commands: pad tracking error, force band, slide length
-and speed, on a soft and a hard material (the cases of tests/test_stroking.py); on the robot's scene (the
+and speed, on a soft and two hard materials (the cases of tests/test_stroking.py); on the robot's scene (the
 object free on the table, 100 solver iterations) or on the data set's fixture (the object clamped and free of
 the table, :meth:`robotdemo.scene.Scene.clamp`) at chosen solver iterations."""
 
@@ -24,9 +24,9 @@ def run_stroke_benchmark(speed_mps: float = 0.02, length_m: float = 0.03, clampe
     """Every case at every count of ``solver_iterations``; ``clamped``: on the data set's fixture."""
     rows = []
     for (category, seed, force_n), iterations in itertools.product(CASES, solver_iterations):
-        config = SceneConfig(n_objects=1, seed=seed, categories=(category,), shapes=("box",),
-                             sim=SimConfig().with_solver_iterations(iterations))
-        with Scene(config) as scene:
+        scene_config = SceneConfig(n_objects=1, seed=seed, categories=(category,), shapes=("box",),
+                                   sim=SimConfig().with_solver_iterations(iterations))
+        with Scene(scene_config) as scene:
             obj = scene.objects[0]
             if clamped:
                 scene.clamp(obj)
