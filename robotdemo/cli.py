@@ -317,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--stroke-s", type=float, default=1.0,
-                       help="inference: length of the synthetic stroke, s (the data sets' median is about 4.4)")
+                       help="inference: length of the synthetic stroke, s (the data sets' median is about 2.2)")
     bench.add_argument("--clamped", action="store_true",
                        help="stroke: on the data set's fixture (the object clamped and free of the table)")
     bench.add_argument("--solver-iterations", default="100", metavar="N[,N...]",
