@@ -221,7 +221,6 @@ class StrokeExecution:
         self.recording = True
         """Whether the physics steps are still recorded (False once the lift has cleared the surface)."""
         self._clear_steps = 0
-        scene.sim.use_step_mode("fine")  # the stroke is the measurement: every contact at the fine step
         self.max_ticks = int(max_time_s / motion.config.control_period_s)
         self.controller = StrokeController(config, scene.robot.tool_state().position_m)
         self.q = scene.robot.arm_q()
@@ -275,7 +274,7 @@ class StrokeExecution:
             sim.use_step_mode("free")
             sim.advance(dt)
             return self.finished
-        sim.use_step_mode("fine")
+        sim.use_step_mode("fine")  # the stroke is the measurement: every contact at the fine step
         for _ in range(motion.substeps):
             sim.step()
             self._record_physics_step()
