@@ -127,4 +127,23 @@ def honesty_check(records: Sequence[StrokeRecord], seed: int = 0) -> dict:
         clf = ReferenceClassifier(ReferenceConfig(label=label)).fit(train)
         result[f"{label}_accuracy"] = round(float(clf.score(test)), 4)
     result["too_easy"] = result["category_accuracy"] > 0.90
+    result["category_accuracy_by_stream"] = stream_accuracies(train, test)
+    return result
+
+
+def stream_accuracies(train: Sequence[StrokeRecord], test: Sequence[StrokeRecord],
+                      config: ReferenceConfig = ReferenceConfig()) -> dict[str, float]:
+    """Accuracy in [0, 1] on ``test`` of one reference classifier per modality, each fitted on that modality's
+    block of :func:`summary_features` of ``train`` alone: how much of the label each stream carries by itself."""
+    x_train = np.stack([summary_features(r, config.n_bands) for r in train])
+    x_test = np.stack([summary_features(r, config.n_bands) for r in test])
+    y_train = ReferenceClassifier(config)._labels(train, None)
+    y_test = np.array(ReferenceClassifier(config)._labels(test, None))
+    block = x_train.shape[1] // len(MODALITIES)
+    result = {}
+    for j, modality in enumerate(MODALITIES):
+        cols = slice(j * block, (j + 1) * block)
+        clf = ReferenceClassifier(config)
+        clf.pipeline.fit(x_train[:, cols], y_train)
+        result[modality] = round(float(np.mean(clf.pipeline.predict(x_test[:, cols]) == y_test)), 4)
     return result

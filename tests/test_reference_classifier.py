@@ -72,3 +72,24 @@ def test_honesty_check_flags_an_emulation_that_is_too_easy():
     hard = honesty_check(make_material_strokes(0, noise=50.0, n_strokes=4), seed=0)
     assert hard["category_accuracy"] < easy["category_accuracy"] and not hard["too_easy"]
     assert set(easy) >= {"n_train", "n_test", "category_accuracy", "instance_accuracy"}
+
+
+def test_stream_accuracies_find_the_stream_that_carries_the_category():
+    """Each stream's own classifier: a stream shuffled across strokes (it carries no category) scores near
+    chance while the intact streams of the same strokes score high; honesty_check reports them."""
+    from perception.reference_classifier import honesty_check, stream_accuracies
+    from tests.test_dataset import make_material_strokes
+
+    records = make_material_strokes(0, noise=0.05, n_strokes=6)  # 3 categories, 108 strokes
+    rng = np.random.default_rng(3)
+    donors = rng.permutation(len(records))
+    shuffled = [dataclasses.replace(r, streams={**r.streams, "sound": records[d].streams["sound"]})
+                for r, d in zip(records, donors)]
+    train, test = shuffled[0::2], shuffled[1::2]
+    acc = stream_accuracies(train, test)
+    assert set(acc) == set(MODALITIES)
+    assert acc["sound"] < 0.6  # chance is 1/3
+    assert min(acc["normal"], acc["friction"], acc["accel"]) > 0.9
+    report = honesty_check(shuffled, seed=0)
+    assert set(report["category_accuracy_by_stream"]) == set(MODALITIES)
+    assert report["category_accuracy_by_stream"]["sound"] < report["category_accuracy"]
