@@ -308,8 +308,9 @@ def build_parser() -> argparse.ArgumentParser:
                                          "classifier"])
     bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
                        "demo, classifier: the classifier (default robotdemo/checkpoints/touchformer_fire)")
-    bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on (also each stream's own accuracy); "
-                       "classifier: the data set the checkpoint was trained on (its held-out part is used)")
+    bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on (also each "
+                       "stream's own accuracy); classifier: the data set the checkpoint was trained on (its "
+                       "held-out part is used)")
     bench.add_argument("--seeds", type=int, default=10, help="demo: number of seeds (fire environment)")
     bench.add_argument("--objects", type=int, default=6, help="demo: objects per seed")
     bench.add_argument("--oracle", action="store_true",
