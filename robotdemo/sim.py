@@ -21,12 +21,14 @@ from robotdemo.errors import AssetError, SimulationError
 
 @dataclass(frozen=True)
 class StepMode:
-    """A physics step length (s, a multiple of the fine step), the solver iterations per step, and whether
-    friction uses Bullet's cone model (``False``: the cheaper two-direction pyramid)."""
+    """A physics step length (s, a multiple of the fine step), the solver iterations per step, whether
+    friction uses Bullet's cone model (``False``: the cheaper two-direction pyramid), and the lightest held body
+    the mode is good for (kg; :meth:`Simulator.use_step_mode` falls back to the fine step below it)."""
 
     time_step_s: float
     solver_iterations: int
     cone_friction: bool = True
+    min_held_mass_kg: float = 0.0
 
 
 STEP_MODES = ("fine", "free", "carry")
@@ -47,14 +49,19 @@ class SimConfig:
         solver_residual_threshold: the solver stops early once its residual falls below this (PyBullet's
             default 1e-7; at 1e-5 and above the force loop on a hard block no longer settles within +-10 %).
         free_step: the ``"free"`` step mode, for the arm moving with nothing in hand (no contact to resolve).
-        carry_step: the ``"carry"`` step mode, an option for transporting and lowering a held object: 2 ms
-            steps with pyramid friction (with the cone, a 1.1 kg brass cylinder carried at 2 ms or 4 ms steps
-            slipped out of the fingers). A held object's contacts cost a 1 ms cone step about 1.8x a stroke
-            step (scratch profile of one 6-object run: lifting, transport and placing took half the wall time
-            for 24 % of the simulated), but light objects slip more often at this step, so the sorting robot
-            does not use it by default (see ``SortingConfig.step_modes``).
+        carry_step: the ``"carry"`` step mode, for grasping a resting object, lifting, carrying, lowering and
+            releasing it: the fine step and the friction cone at 50 solver iterations, for held objects of 10 g
+            and more (lighter ones are held at the fine step). Held in three fingers, an object's contacts cost a
+            1 ms step at 100 iterations 0.5 ms against 0.2 ms for a stroke step (scratch profile of one
+            6-object run: those states took two thirds of the physics' wall time). Fewer iterations resolve a
+            light object squeezed between the heavy fingers less well: a 50 mm block squeezed at 0.5 N m (the
+            sorting robot's least, ``SortingConfig.grasp_effort_nm``) and carried 15 cm (``tests/test_grasp.py``'s
+            case) shifted in the fingers by 0.9 / 0.7 mm at 20 g (100 / 50 iterations), 1.0 / 1.4 mm at 12.5 g,
+            1.2 / 4.9 mm at 7.5 g and 3.3 / 12.1 mm at 4 g (scratch). Longer steps lose objects: at 2 ms with
+            pyramid friction a 7 g textile slab slipped out in transport, and at 2 ms or 4 ms with the cone a
+            1.1 kg brass cylinder did.
         The modes are switched with :meth:`Simulator.use_step_mode`; ``"fine"`` is ``time_step_s`` with
-        ``solver_iterations`` and the friction cone, what pressing, stroking and grasping need.
+        ``solver_iterations`` and the friction cone, what pressing and stroking (the measurement) need.
         gravity_mps2: gravity along world -z.
         gui: open PyBullet's own GUI window instead of running headless (DIRECT).
     """
@@ -63,7 +70,7 @@ class SimConfig:
     solver_iterations: int = 100
     solver_residual_threshold: float = 1e-7
     free_step: StepMode = StepMode(time_step_s=4.0 / 1000.0, solver_iterations=100)
-    carry_step: StepMode = StepMode(time_step_s=2.0 / 1000.0, solver_iterations=100, cone_friction=False)
+    carry_step: StepMode = StepMode(time_step_s=1.0 / 1000.0, solver_iterations=50, min_held_mass_kg=0.01)
     gravity_mps2: float = 9.81
     contact_erp: float = 0.2
     friction_erp: float = 0.2
@@ -242,20 +249,29 @@ class Simulator:
         """The physics step in use now, s."""
         return self._modes[self.step_mode].time_step_s
 
-    def use_step_mode(self, mode: str) -> None:
+    def use_step_mode(self, mode: str, held_body: int | None = None) -> str:
         """Switch the physics step: ``"fine"`` (``time_step_s``, ``solver_iterations``, friction cone: contact
         that is measured or must be resolved finely), ``"free"`` (``free_step``) or ``"carry"``
-        (``carry_step``)."""
+        (``carry_step``). With ``held_body`` (the body in the hand), a mode is used only if the body weighs at
+        least the mode's ``min_held_mass_kg``; the fine step otherwise. Returns the mode in use."""
         if mode not in self._modes:
             raise ValueError(f"unknown step mode {mode!r}; expected one of {STEP_MODES}")
+        if held_body is not None and self._modes[mode].min_held_mass_kg > 0.0:
+            if self.mass_kg(held_body) < self._modes[mode].min_held_mass_kg:
+                mode = "fine"
         if mode == self.step_mode:
-            return
+            return mode
         self._mode_start_s, self._mode_steps = self.time_s, 0
         self.step_mode = mode
         p.setPhysicsEngineParameter(fixedTimeStep=self._modes[mode].time_step_s,
                                     numSolverIterations=self._modes[mode].solver_iterations,
                                     enableConeFriction=int(self._modes[mode].cone_friction),
                                     physicsClientId=self.client)
+        return mode
+
+    def mass_kg(self, body: int) -> float:
+        """Mass of ``body``'s base, kg."""
+        return float(p.getDynamicsInfo(body, -1, physicsClientId=self.client)[0])
 
     def step(self, n: int = 1) -> None:
         """``n`` physics steps of the current mode."""

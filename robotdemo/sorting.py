@@ -82,10 +82,11 @@ DEFAULT_TIME_BUDGET_S: Mapping[State, float] = MappingProxyType({
 """Longest simulated time each state may take for one object, s (re-entering a state restarts its clock)."""
 
 DEFAULT_STEP_MODES: Mapping[State, str] = MappingProxyType({
-    State.SELECT_OBJECT: "free", State.APPROACH: "free", State.CLASSIFY: "free", State.RETREAT: "free",
-    State.DONE: "free",
+    State.SELECT_OBJECT: "free", State.APPROACH: "free", State.CLASSIFY: "free", State.PRE_GRASP: "free",
+    State.GRASP: "carry", State.LIFT: "carry", State.TRANSPORT: "carry", State.PLACE: "carry",
+    State.RELEASE: "carry", State.RETREAT: "free", State.DONE: "free",
 })
-"""Physics step mode per state (the others are fine): see ``SortingConfig.step_modes``."""
+"""Physics step mode per state (the others, pressing and stroking, are fine): see ``SortingConfig.step_modes``."""
 
 
 @dataclass(frozen=True)
@@ -131,7 +132,10 @@ class SortingConfig:
         grasp_tip_height_m: fingertip height above the object's bottom once closed (lower for thin objects:
             at most 45 % of the height, at least ``grasp_min_tip_height_m``, which keeps the tactile pad, 4 mm
             beyond the thumb's tip, off the table).
-        grasp_effort_nm: least finger motor cap while holding, N m (None: the robot's default).
+        grasp_effort_nm: least finger motor cap while holding, N m (None: the robot's default, 1.5 N m). A light
+            object squeezed far harder than its weight needs is a stiff problem for the physics solver: carried
+            15 cm at 50 solver iterations, a 12.5 g block shifted 12.4 mm in the fingers at 1.5 N m, 4.9 mm at
+            0.75 and 1.5 mm at 0.4 (1.1-2.2 mm at 100 iterations; scratch, ``tests/test_grasp.py``'s case).
         grasp_effort_per_kg_nm: the cap grows with the object's estimated mass (its volume times the heaviest
             nominal density of the predicted category), N m per kg, so a brass block is squeezed harder than
             a cork one.
@@ -168,14 +172,10 @@ class SortingConfig:
             :class:`ArmMotion`).
         time_budget_s: per-state time budget (see :data:`DEFAULT_TIME_BUDGET_S`).
         step_modes: the simulator's step mode per state (:meth:`robotdemo.sim.Simulator.use_step_mode`;
-            states not listed are ``"fine"``): ``"free"`` (4 ms) while the arm moves with nothing in hand.
-            Pressing and stroking (the measurement), grasping, carrying and releasing stay fine. ``"carry"``
-            (2 ms, pyramid friction) can be given to TRANSPORT and PLACE: over 10 seeds with true labels
-            (scratch, both variants side by side) it raised the median real-time factor from 1.60 to 1.94 but
-            lost 2 of 59 grasps (a 7 g textile slab slipped in transport and fell off the table) against 0 of 58.
-            Lifting must stay fine even then: a cylinder slipping out of a weak grasp at the carry step rolled
-            off the table in the fault test. (Carried at 2 ms with the friction cone, or at 4 ms, a 1.1 kg brass
-            cylinder slipped out of the fingers.)
+            states not listed are ``"fine"``): ``"free"`` (4 ms) while the arm moves with nothing in hand or
+            near it (PRE_GRASP only opens the fingers above the object); ``"carry"`` (1 ms, friction cone, 50
+            solver iterations; the fine step for objects under 10 g) from GRASP to RELEASE; pressing and
+            stroking (the measurement) stay fine. See ``SimConfig.carry_step`` for what was measured.
     """
 
     environment: str = "fire"
@@ -201,7 +201,7 @@ class SortingConfig:
     grasp_squeeze_m: float = 0.006
     grasp_tip_height_m: float = 0.012
     grasp_min_tip_height_m: float = 0.008
-    grasp_effort_nm: float | None = None
+    grasp_effort_nm: float | None = 0.5
     grasp_effort_per_kg_nm: float = 4.0
     grasp_reference_friction: float = 0.5
     grasp_friction_gain_max: float = 3.0
@@ -631,7 +631,8 @@ class SortingMachine:
             return self.state
         time_before = self.sim.time_s
         state = self.state
-        self.sim.use_step_mode(self.config.step_modes.get(state, "fine"))
+        held = self.current_object.body if self.current_object is not None else None
+        self.sim.use_step_mode(self.config.step_modes.get(state, "fine"), held_body=held)
         budget = self._budget(state)
         if state not in (State.DONE, State.RETREAT) and self.state_time_s > budget + 1e-9:
             self._fail(f"{state.value} exceeded its time budget of {budget:g} s")

@@ -173,7 +173,7 @@ def test_solver_iterations_set_for_every_step_mode():
     config = SimConfig().with_solver_iterations(40)
     assert config.solver_iterations == config.free_step.solver_iterations == config.carry_step.solver_iterations == 40
     assert config.free_step.time_step_s == SimConfig().free_step.time_step_s
-    assert config.carry_step.cone_friction is False
+    assert config.carry_step.cone_friction == SimConfig().carry_step.cone_friction
     with pytest.raises(ValueError, match="solver iterations must be >= 1"):
         SimConfig().with_solver_iterations(0)
     with Scene(SceneConfig(n_objects=0, seed=0, sim=config)) as scene:

@@ -41,7 +41,7 @@ def _run(scene_config: SceneConfig, faults: FaultInjector = FaultInjector(), see
          config: SortingConfig = SortingConfig(), max_ticks: int = 40_000):
     """Step a machine to DONE, one tick per call, watching it. Returns (machine, classifier, per-object state
     sequences, stroke phases seen, final poses, true zones, whether every step advanced the physics exactly one
-    control tick, the whole sequence of states)."""
+    control tick, the whole sequence of states, the physics step modes seen per (state, object name), each object's mass in kg)."""
     classifier = OracleClassifier()
     with Scene(scene_config) as scene:
         n_constraints = p.getNumConstraints(physicsClientId=scene.sim.client)
@@ -49,10 +49,13 @@ def _run(scene_config: SceneConfig, faults: FaultInjector = FaultInjector(), see
         sequences: dict[str, list[State]] = {}
         states = [machine.state]
         phases: set = set()
+        step_modes: dict[tuple[State, str | None], set[str]] = {}
         one_tick = True
         for _ in range(max_ticks):
             time_before = scene.sim.time_s
+            ticked, name = machine.state, machine.current_object.name if machine.current_object else None
             state = machine.step()
+            step_modes.setdefault((ticked, name), set()).add(scene.sim.step_mode)
             one_tick &= abs(scene.sim.time_s - time_before - machine.dt) < 1e-9
             if states[-1] is not state:
                 states.append(state)
@@ -68,7 +71,8 @@ def _run(scene_config: SceneConfig, faults: FaultInjector = FaultInjector(), see
         assert p.getNumConstraints(physicsClientId=scene.sim.client) == n_constraints  # friction only
         poses = {o.name: np.concatenate(scene.object_pose(o)) for o in scene.objects}
         zones = {o.name: scene.zone_for(o.combustible).name for o in scene.objects}
-    return machine, classifier, sequences, phases, poses, zones, one_tick, states
+        masses = {o.name: scene.sim.mass_kg(o.body) for o in scene.objects}
+    return machine, classifier, sequences, phases, poses, zones, one_tick, states, step_modes, masses
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +81,7 @@ def episode():
 
 
 def test_episode_steps_through_every_state_to_done(episode):
-    machine, classifier, sequences, phases, poses, true_zones, one_tick, states = episode
+    machine, classifier, sequences, phases, poses, true_zones, one_tick, states, _, _ = episode
     assert one_tick, "a step advanced the physics by other than one control tick"
     assert machine.state is State.DONE and machine.last_event.state is State.DONE
     assert states == [State.SELECT_OBJECT] + (PER_OBJECT + [State.SELECT_OBJECT]) * 3 + [State.DONE], \
@@ -94,6 +98,22 @@ def test_episode_steps_through_every_state_to_done(episode):
         assert d.measured_friction == pytest.approx(kinetic, rel=0.05)
     assert machine.grasp_failures == 0
     assert len(classifier.records) == 3
+
+
+def test_physics_step_modes_follow_the_states(episode):
+    """Stroking is simulated at the fine step (100 solver iterations), the arm moving with nothing in hand at the
+    free step, and grasping to releasing at the carry step (50 iterations), except for objects lighter than the
+    carry step's ``min_held_mass_kg``, which are held at the fine step."""
+    machine, step_modes, masses = episode[0], episode[-2], episode[-1]
+    min_mass_kg = machine.sim.config.carry_step.min_held_mass_kg
+    assert max(masses.values()) >= min_mass_kg
+    for (state, name), modes in step_modes.items():
+        if state is State.STROKE:
+            assert modes == {"fine", "free"}, (name, modes)  # the free step only while hovering, untouched
+        elif state in (State.GRASP, State.LIFT, State.TRANSPORT, State.PLACE, State.RELEASE):
+            assert modes == {"carry" if masses[name] >= min_mass_kg else "fine"}, (state, name, masses[name], modes)
+        elif state in (State.APPROACH, State.PRE_GRASP, State.RETREAT):
+            assert modes == {"free"}, (state, name, modes)
 
 
 def test_events_are_named_records(episode):
