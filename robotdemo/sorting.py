@@ -693,7 +693,11 @@ class SortingMachine:
         zone = self.scene.zone_of(obj)
         decision = self.decisions[obj.name]
         success = not decision.failure_reason and zone is not None and zone.name == decision.target_zone
-        self._update(zone_reached=zone.name if zone else None, success=success, end_time_s=self.sim.time_s)
+        reason = decision.failure_reason
+        if not reason and not success:  # released, then it rolled or tipped out
+            reason = f"came to rest in {zone.name + ' zone' if zone else 'no zone'}, not the {decision.target_zone} zone"
+        self._update(zone_reached=zone.name if zone else None, success=success, end_time_s=self.sim.time_s,
+                     failure_reason=reason)
         if decision.failure_reason:
             message = f"done with it (failed: {decision.failure_reason})"
         else:

@@ -266,6 +266,29 @@ def test_object_pushed_out_of_its_zone_after_placing_fails_with_the_reason():
         assert d.failure_reason == f"pushed out of the {zone.name} zone after it was placed"
 
 
+def test_object_knocked_out_before_it_rests_fails_with_the_reason():
+    """An object that leaves its zone between release and coming to rest (here a box thrown at it while the hand
+    retreats) is not counted, and the report says where it came to rest."""
+    classifier = OracleClassifier()
+    with Scene(SceneConfig(n_objects=1, seed=4)) as scene:
+        machine = SortingMachine(scene, classifier, SortingConfig(), seed=0)
+        obj = scene.objects[0]
+        zone = scene.zone_for(obj.combustible)
+        while machine.state is not State.RETREAT:
+            machine.step()
+        rest, _ = scene.object_pose(obj)
+        start = rest + np.array([0.0, -0.06 * np.sign(zone.center_xy_m[1]), 0.0])
+        start[2] = scene.table_top_z_m + 0.015
+        projectile = scene.sim.create_primitive("box", (0.03, 0.03, 0.03), 2.0, start, (0, 0, 0, 1), (1, 0, 0, 1))
+        p.resetBaseVelocity(projectile, [0.0, 3.0 * np.sign(zone.center_xy_m[1]), 0.0],
+                            physicsClientId=scene.sim.client)
+        while machine.decisions[obj.name].end_time_s is None:
+            machine.step()
+        d = machine.decisions[obj.name]
+        assert scene.zone_of(obj) is None and not d.success and d.zone_reached is None
+        assert d.failure_reason == f"came to rest in no zone, not the {zone.name} zone"
+
+
 @pytest.fixture(scope="module")
 def tall_light_cylinder():
     """Seed 8's 99 g polycarbonate cylinder, 42 mm across and 60 mm tall (static friction 1.16 on the pad)."""
