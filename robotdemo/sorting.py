@@ -135,7 +135,7 @@ class SortingConfig:
         grasp_effort_nm: least finger motor cap while holding, N m (None: the robot's default, 1.5 N m). A light
             object squeezed far harder than its weight needs is a stiff problem for the physics solver: carried
             15 cm at 50 solver iterations, a 12.5 g block shifted 12.4 mm in the fingers at 1.5 N m, 4.9 mm at
-            0.75 and 1.5 mm at 0.4 (1.1-2.2 mm at 100 iterations; scratch, ``tests/test_grasp.py``'s case).
+            0.75 and 1.5 mm at 0.4 (0.9-2.2 mm at 100 iterations; scratch, ``tests/test_grasp.py``'s case).
         grasp_effort_per_kg_nm: the cap grows with the object's estimated mass (its volume times the heaviest
             nominal density of the predicted category), N m per kg, so a brass block is squeezed harder than
             a cork one.
@@ -695,7 +695,8 @@ class SortingMachine:
         success = not decision.failure_reason and zone is not None and zone.name == decision.target_zone
         reason = decision.failure_reason
         if not reason and not success:  # released, then it rolled or tipped out
-            reason = f"came to rest in {zone.name + ' zone' if zone else 'no zone'}, not the {decision.target_zone} zone"
+            where = f"the {zone.name} zone" if zone else "no zone"
+            reason = f"came to rest in {where}, not the {decision.target_zone} zone"
         self._update(zone_reached=zone.name if zone else None, success=success, end_time_s=self.sim.time_s,
                      failure_reason=reason)
         if decision.failure_reason:

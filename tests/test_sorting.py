@@ -41,7 +41,8 @@ def _run(scene_config: SceneConfig, faults: FaultInjector = FaultInjector(), see
          config: SortingConfig = SortingConfig(), max_ticks: int = 40_000):
     """Step a machine to DONE, one tick per call, watching it. Returns (machine, classifier, per-object state
     sequences, stroke phases seen, final poses, true zones, whether every step advanced the physics exactly one
-    control tick, the whole sequence of states, the physics step modes seen per (state, object name), each object's mass in kg)."""
+    control tick, the whole sequence of states, the physics step modes seen per (state, object name), each
+    object's mass in kg)."""
     classifier = OracleClassifier()
     with Scene(scene_config) as scene:
         n_constraints = p.getNumConstraints(physicsClientId=scene.sim.client)
