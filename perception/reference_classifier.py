@@ -121,7 +121,7 @@ def honesty_check(records: Sequence[StrokeRecord], seed: int = 0) -> dict:
     from perception.dataset import ssmc_split
 
     train_idx, test_idx = ssmc_split(records, seed)
-    x = np.stack([summary_features(r, ReferenceConfig().n_bands) for r in records])
+    x = ReferenceClassifier()._features(records)  # (N, D), shared by every classifier below
     result = {"n_train": len(train_idx), "n_test": len(test_idx), "seed": seed}
     labels = {}
     for label in ("category", "instance"):
