@@ -25,8 +25,9 @@ import torch.nn.functional as F
 
 from perception.features import FeatureBatch
 from perception.streams import MODALITIES
-from perception.touchformer import (ModelOutput, TouchFormer, TouchFormerConfig, TouchFormerFusionConfig,
-                                    TouchFormerMagConfig, TouchFormerSoftGateConfig, uniform_weights)
+from perception.touchformer import (ModelOutput, ResidualDilatedConvs, TouchFormer, TouchFormerConfig,
+                                    TouchFormerFusionConfig, TouchFormerMagConfig, TouchFormerSoftGateConfig,
+                                    uniform_weights)
 
 N_MOD = len(MODALITIES)
 
@@ -164,15 +165,12 @@ class DilatedTemporalEncoder(nn.Module):
     def __init__(self, in_dim: int, channels: int, dilations: tuple[int, ...], kernel_size: int) -> None:
         super().__init__()
         self.inp = nn.Conv1d(in_dim, channels, 1)
-        self.convs = nn.ModuleList([nn.Conv1d(channels, channels, kernel_size, dilation=d,
-                                              padding=d * (kernel_size // 2)) for d in dilations])
+        self.residual = ResidualDilatedConvs(channels, dilations, kernel_size)
 
     def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         mask = valid.unsqueeze(1).to(x.dtype)  # (B, 1, T)
         h = self.inp(x.transpose(1, 2)) * mask  # (B, ch, T)
-        for conv in self.convs:
-            h = (h + F.relu(conv(h))) * mask  # (B, ch, T)
-        return h.transpose(1, 2)  # (B, T, ch)
+        return self.residual(h, mask).transpose(1, 2)  # (B, T, ch)
 
 
 class MTCNNClassifier(nn.Module):

@@ -22,6 +22,8 @@ Choices the paper leaves open, made here:
 - ``use_mag=False`` is the ablation "transformer fusion only": alpha = 1 / (number of present modalities).
 - A modality dropped by the threshold gets no gradient through its alpha; ``gate_straight_through=True``
   (off by default) passes one as if it had been kept, without changing what the model computes.
+- ``stem_dilations`` (empty by default, the paper's single Conv1D) adds residual dilated Conv1D layers after
+  step 1's Conv1D, as MTCNN's encoders have; an option for comparing per-sensor encoders, not the paper's.
 - Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
   attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
   with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real
@@ -71,6 +73,9 @@ class TouchFormerConfig:
         gate_straight_through: training only: gradients reach a gate that fell below gate_th as if its
             modality had been kept (:func:`mag_weights`); what the model computes is unchanged. Off by default
             (the paper does not say how a dropped gate learns).
+        stem_dilations: after the Conv1D of step 1, residual dilated Conv1D layers (kernel 3) of width d with
+            these dilations, as MTCNN's encoders have (:class:`ResidualDilatedConvs`). Empty (the paper's
+            single Conv1D) by default.
     """
 
     in_dims: tuple[int, ...]
@@ -90,6 +95,7 @@ class TouchFormerConfig:
     cer_lambda: float = 0.1
     cer_tau: float = 0.2
     gate_straight_through: bool = False
+    stem_dilations: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -102,6 +108,8 @@ class TouchFormerConfig:
             raise ValueError(f"gate_th must lie in [0, 1), got {self.gate_th}")
         if self.gate_temperature <= 0:
             raise ValueError(f"gate_temperature must be positive, got {self.gate_temperature}")
+        if any(d < 1 for d in self.stem_dilations):
+            raise ValueError(f"stem_dilations must be positive, got {self.stem_dilations}")
 
 
 @dataclass(frozen=True)
@@ -211,17 +219,37 @@ def uniform_weights(present: torch.Tensor) -> torch.Tensor:
 # building blocks
 
 
-class ModalityEmbedding(nn.Module):
-    """Temporal Conv1D (kernel k_m, 'same' padding) from C_m feature channels to width d."""
+class ResidualDilatedConvs(nn.Module):
+    """Residual dilated Conv1D layers h <- h + ReLU(conv_d(h)) with 'same' padding; padded steps kept at 0."""
 
-    def __init__(self, in_dim: int, d_model: int, kernel_size: int) -> None:
+    def __init__(self, channels: int, dilations: tuple[int, ...], kernel_size: int = 3) -> None:
+        super().__init__()
+        self.convs = nn.ModuleList([nn.Conv1d(channels, channels, kernel_size, dilation=d,
+                                              padding=d * (kernel_size // 2)) for d in dilations])
+
+    def forward(self, h: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """h (B, ch, T) zero at padded steps, mask (B, 1, T) -> (B, ch, T)."""
+        for conv in self.convs:
+            h = (h + F.relu(conv(h))) * mask  # (B, ch, T)
+        return h
+
+
+class ModalityEmbedding(nn.Module):
+    """Temporal Conv1D (kernel k_m, 'same' padding) from C_m feature channels to width d, then the optional
+    residual dilated layers (``TouchFormerConfig.stem_dilations``)."""
+
+    def __init__(self, in_dim: int, d_model: int, kernel_size: int, dilations: tuple[int, ...] = ()) -> None:
         super().__init__()
         self.conv = nn.Conv1d(in_dim, d_model, kernel_size, padding=kernel_size // 2)
+        self.dilated = ResidualDilatedConvs(d_model, dilations) if dilations else None
 
     def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        mask = valid.unsqueeze(1).to(x.dtype)  # (B, 1, T)
         x = x * valid.unsqueeze(-1)  # (B, T, C) zeros at padding == the conv's own zero padding
-        h = self.conv(x.transpose(1, 2)).transpose(1, 2)  # (B, T, d)
-        return h * valid.unsqueeze(-1)  # (B, T, d)
+        h = self.conv(x.transpose(1, 2)) * mask  # (B, d, T)
+        if self.dilated is not None:
+            h = self.dilated(h, mask)  # (B, d, T)
+        return h.transpose(1, 2)  # (B, T, d)
 
 
 class ModalityGate(nn.Module):
@@ -332,7 +360,8 @@ class TouchFormer(nn.Module):
         super().__init__()
         self.config = config
         c = config
-        self.embed = nn.ModuleDict({m: ModalityEmbedding(c.in_dims[i], c.d_model, c.kernel_sizes[i])
+        self.embed = nn.ModuleDict({m: ModalityEmbedding(c.in_dims[i], c.d_model, c.kernel_sizes[i],
+                                                      c.stem_dilations)
                                     for i, m in enumerate(MODALITIES)})
         self.emb_drop = nn.Dropout(c.emb_dropout)
         self.gate = ModalityGate(c.d_model, c.gate_hidden)

@@ -68,10 +68,11 @@ def train_and_score(model: torch.nn.Module, train: list[FeatureBatch], test: Fea
     return float((pred == test.labels).float().mean())
 
 
-@pytest.fixture(scope="module")
-def model() -> TouchFormer:
+@pytest.fixture(scope="module", params=[(), (1, 2)], ids=["paper_stem", "dilated_stem"])
+def model(request) -> TouchFormer:
+    """The paper's single Conv1D per modality, and the option with residual dilated layers after it."""
     torch.manual_seed(0)
-    return TouchFormer(tiny_config()).eval()
+    return TouchFormer(tiny_config(stem_dilations=request.param)).eval()
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -252,6 +253,8 @@ def test_config_validation():
         tiny_config(kernel_sizes=(4, 3, 3, 3))
     with pytest.raises(ValueError, match="gate_th"):
         tiny_config(gate_th=1.5)
+    with pytest.raises(ValueError, match="stem_dilations"):
+        tiny_config(stem_dilations=(1, 0))
 
 
 def test_tiny_touchformer_learns_held_out():
