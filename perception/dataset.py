@@ -325,14 +325,17 @@ def usmc_folds(records: Sequence[StrokeRecord], k: int = 5, seed: int = 0) -> li
 
 
 def validation_split(records: Sequence[StrokeRecord], train_idx: np.ndarray, task: str, seed: int,
-                     fraction: float = 0.15, group_by_object: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     fraction: float = 0.15, group_by_object: bool | None = None,
+                     group_by_instance: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Carve a validation part out of the training indices (never out of the test part).
 
     Stratified by the task's label: every class gives at least one stroke (object) when that fits within
     ``fraction``; otherwise (many small classes, e.g. fine-grained with 3-4 training strokes per instance) the
     picks are allotted by largest remainder, some classes give none and the total stays at ``fraction``. By
     default, USMC validation keeps whole objects together (closer to the unseen-instance test condition than
-    a stroke split), SSMC and fine-grained split by stroke. A class never gives up its last stroke (object).
+    a stroke split), SSMC and fine-grained split by stroke. ``group_by_instance`` (SSMC and USMC only) keeps
+    whole material instances together instead, as the USMC test part does. A class never gives up its last
+    stroke (object, instance).
 
     Returns:
         (train indices, validation indices), sorted; empty validation if ``fraction`` is 0.
@@ -342,9 +345,11 @@ def validation_split(records: Sequence[StrokeRecord], train_idx: np.ndarray, tas
         return np.sort(train_idx), np.zeros(0, dtype=np.int64)
     if group_by_object is None:
         group_by_object = task == "usmc"
+    if group_by_instance and task == "fine":
+        raise ValueError("fine-grained labels are the instances: its validation cannot hold out whole instances")
     rng = np.random.default_rng(seed + 7919)
     labels = labels_of(records, task)
-    groups = _groups(records, group_by_object)
+    groups = [r.instance for r in records] if group_by_instance else _groups(records, group_by_object)
     by_label: dict[str, set[str]] = defaultdict(set)
     for i in train_idx:
         by_label[labels[i]].add(groups[i])

@@ -107,6 +107,10 @@ class TrainConfig:
         split_by_object: SSMC and fine-grained: keep all strokes of one physical object on one side of the
             test split and of the validation split (stricter than the paper's split by stroke; what a robot
             meeting new objects needs to be selected on). USMC always holds out whole instances.
+        val_by_instance: SSMC and USMC: the validation part holds out whole material instances of the
+            training part (:func:`perception.dataset.validation_split`), as USMC's test part does, so the best
+            epoch is the one that does best on instances not trained on. Off by default: validation strokes
+            come from objects (USMC) or strokes (SSMC) of instances that are trained on.
         num_threads: torch CPU threads; 0 leaves torch's default.
         group_by_length: batches of strokes of similar length (:func:`length_grouped_batches`) instead of
             uniformly shuffled ones, so that less of each batch is padding. Off by default: the committed robot
@@ -141,6 +145,7 @@ class TrainConfig:
     val_fraction: float = 0.15
     train_fraction: float = 1.0
     split_by_object: bool = False
+    val_by_instance: bool = False
     num_threads: int = 0
     group_by_length: bool = False
     modality_dropout: float = 0.0
@@ -647,7 +652,8 @@ def task_split(records: Sequence[StrokeRecord], config: TrainConfig, fold: int =
             raise TrainError(f"fold {fold} out of range for {len(folds)} folds")
         train_idx, test_idx = folds[fold]
     train_idx, val_idx = validation_split(records, train_idx, config.task, config.seed, config.val_fraction,
-                                          group_by_object=by_object or None)
+                                          group_by_object=by_object or None,
+                                          group_by_instance=config.val_by_instance)
     if config.train_fraction < 1.0:
         train_idx = _subsample(records, train_idx, config)
     return train_idx, val_idx, test_idx
@@ -700,7 +706,7 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
     metrics = {"task": config.task, "model": config.model, "fold": fold, "seed": config.seed,
                "test_accuracy": _accuracy(preds.pred, y), "test_g_mean": g_mean(y, preds.pred, range(len(names))),
                "n_train": len(train_idx), "n_val": len(val_idx), "n_test": len(test_idx),
-               "split_by_object": config.split_by_object,
+               "split_by_object": config.split_by_object, "val_by_instance": config.val_by_instance,
                "best_epoch": result.best_epoch, "best_val_accuracy": result.best_val_accuracy,
                "temperature": temperature, "val_nll": nll(val_preds.logits, y_val),
                "val_nll_calibrated": nll(val_preds.logits, y_val, temperature),

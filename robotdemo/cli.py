@@ -89,7 +89,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          weight_decay=defaults.weight_decay if args.weight_decay is None else args.weight_decay,
                          feature_noise_std=(defaults.feature_noise_std if args.feature_noise is None
                                             else args.feature_noise),
-                         split_by_object=args.split_by_object, group_by_length=args.group_by_length,
+                         split_by_object=args.split_by_object, val_by_instance=args.val_by_instance,
+                         val_fraction=defaults.val_fraction if args.val_fraction is None else args.val_fraction,
+                         group_by_length=args.group_by_length,
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
                          time_crop=args.time_crop,
@@ -267,6 +269,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--dropout", type=float, default=None, help="the model's dropout (default: the model's)")
     train.add_argument("--split-by-object", action="store_true",
                        help="ssmc/fine: test and validation strokes come from objects not trained on")
+    train.add_argument("--val-by-instance", action="store_true",
+                       help="ssmc/usmc: validation strokes come from material instances not trained on")
+    train.add_argument("--val-fraction", type=float, default=None,
+                       help="validation share of the training part (default 0.15)")
     train.add_argument("--group-by-length", action="store_true",
                        help="batches of strokes of similar length (less padding, faster epochs)")
     train.add_argument("--modality-dropout", type=float, default=0.0,

@@ -194,6 +194,19 @@ def test_validation_comes_from_training_only():
     assert val.size == 0 and tr.size == len(recs)
 
 
+def test_validation_by_instance_holds_out_whole_instances():
+    recs = make_material_strokes(6, n_categories=3, n_instances=4, n_objects=2, n_strokes=3, duration_s=0.02)
+    instances = lambda idx: {recs[i].instance for i in idx}  # noqa: E731
+    for task in ("ssmc", "usmc"):
+        train, _ = ssmc_split(recs, seed=0) if task == "ssmc" else usmc_folds(recs, k=4, seed=0)[0]
+        tr, val = validation_split(recs, train, task, seed=0, fraction=0.3, group_by_instance=True)
+        assert val.size > 0 and not instances(tr) & instances(val)
+        assert sorted(set(tr) | set(val)) == sorted(train.tolist())
+        assert {recs[i].category for i in tr} == {recs[i].category for i in train}  # no class emptied
+    with pytest.raises(ValueError, match="fine-grained"):
+        validation_split(recs, np.arange(len(recs)), "fine", seed=0, group_by_instance=True)
+
+
 def test_validation_fraction_holds_with_many_small_classes():
     recs = make_material_strokes(7, n_categories=4, n_instances=5, n_objects=1, n_strokes=4, duration_s=0.01)
     train, _ = fine_split(recs, seed=0)  # 20 instances, 3 training strokes each

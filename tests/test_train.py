@@ -296,6 +296,18 @@ def test_split_by_object_keeps_objects_on_one_side(task):
     assert objects(train_s) & objects(test_s)
 
 
+def test_val_by_instance_validates_on_instances_not_trained_on():
+    recs = make_material_strokes(4, n_categories=2, n_instances=5, n_objects=2, n_strokes=2, duration_s=0.02)
+    instances = lambda idx: {recs[i].instance for i in idx}  # noqa: E731
+    config = TrainConfig(task="usmc", val_by_instance=True, val_fraction=0.3)
+    train_idx, val_idx, test_idx = task_split(recs, config)
+    assert sorted(np.concatenate([train_idx, val_idx, test_idx]).tolist()) == list(range(len(recs)))
+    assert len(val_idx) and not instances(train_idx) & instances(val_idx)
+    # by default USMC validation shares instances (not objects) with training
+    train_d, val_d, _ = task_split(recs, TrainConfig(task="usmc", val_fraction=0.3))
+    assert instances(train_d) & instances(val_d)
+
+
 @pytest.mark.parametrize("task", ["ssmc", "usmc"])
 def test_train_fraction_keeps_a_stratified_share_and_the_same_validation_and_test(task):
     recs = make_material_strokes(5, n_categories=3, n_instances=5, n_objects=2, n_strokes=4, duration_s=0.02)
