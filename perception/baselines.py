@@ -142,6 +142,8 @@ class MTCNNConfig:
         emb_dim: embedding size E.
         cer_lambda: CER weight (0: cross-entropy only).
         cer_tau: CER temperature.
+        max_pool: pool each sensor by its masked mean and maximum (True) or by its mean alone, as TouchFormer
+            does (False; an option for comparing the two).
     """
 
     in_dims: tuple[int, ...]
@@ -153,6 +155,7 @@ class MTCNNConfig:
     emb_dim: int = 64
     cer_lambda: float = 0.0
     cer_tau: float = 0.2
+    max_pool: bool = True
 
     def __post_init__(self) -> None:
         if self.kernel_size % 2 == 0:
@@ -174,7 +177,8 @@ class DilatedTemporalEncoder(nn.Module):
 
 
 class MTCNNClassifier(nn.Module):
-    """Per-modality dilated temporal CNNs, masked mean+max pooling, concatenation fusion, MLP head."""
+    """Per-modality dilated temporal CNNs, masked mean+max pooling (mean alone with ``max_pool=False``),
+    concatenation fusion, MLP head."""
 
     def __init__(self, config: MTCNNConfig) -> None:
         super().__init__()
@@ -182,7 +186,7 @@ class MTCNNClassifier(nn.Module):
         c = config
         self.encoders = nn.ModuleDict({m: DilatedTemporalEncoder(c.in_dims[i], c.channels, c.dilations,
                                                                  c.kernel_size) for i, m in enumerate(MODALITIES)})
-        width = N_MOD * 2 * c.channels + N_MOD
+        width = N_MOD * (2 if c.max_pool else 1) * c.channels + N_MOD
         self.fuse = nn.Sequential(nn.Linear(width, 2 * c.channels), nn.ReLU(), nn.Dropout(c.dropout))
         self.classifier = nn.Linear(2 * c.channels, c.n_classes)
         self.embedding_head = nn.Linear(2 * c.channels, c.emb_dim)
@@ -194,10 +198,11 @@ class MTCNNClassifier(nn.Module):
             valid = ~batch.padding[m]  # (B, T)
             h = self.encoders[m](batch.x[m], valid)  # (B, T, ch)
             n = valid.sum(dim=1, keepdim=True).clamp(min=1).to(h.dtype)  # (B, 1)
-            mean = h.sum(dim=1) / n  # (B, ch)
-            peak = h.masked_fill(~valid.unsqueeze(-1), float("-inf")).amax(dim=1)  # (B, ch)
-            peak = torch.where(valid.any(dim=1, keepdim=True), peak, torch.zeros_like(peak))  # (B, ch)
-            pooled.append(torch.cat([mean, peak], dim=1) * present[:, i, None])  # (B, 2 ch)
+            parts = [h.sum(dim=1) / n]  # the mean, (B, ch)
+            if self.config.max_pool:
+                peak = h.masked_fill(~valid.unsqueeze(-1), float("-inf")).amax(dim=1)  # (B, ch)
+                parts.append(torch.where(valid.any(dim=1, keepdim=True), peak, torch.zeros_like(peak)))  # (B, ch)
+            pooled.append(torch.cat(parts, dim=1) * present[:, i, None])  # (B, 2 ch) or (B, ch)
         h = self.fuse(torch.cat(pooled + [present.float()], dim=1))  # (B, 2 ch)
         return _uniform_output(self.classifier(h), self.embedding_head(h), present)
 

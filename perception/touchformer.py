@@ -76,6 +76,8 @@ class TouchFormerConfig:
         stem_dilations: after the Conv1D of step 1, residual dilated Conv1D layers (kernel 3) of width d with
             these dilations, as MTCNN's encoders have (:class:`ResidualDilatedConvs`). Empty (the paper's
             single Conv1D) by default.
+        max_pool: step 5 pools each modality by its masked mean and its maximum (as MTCNN does), concatenated,
+            instead of the mean alone (eq. 12's pooling, the default).
     """
 
     in_dims: tuple[int, ...]
@@ -96,6 +98,7 @@ class TouchFormerConfig:
     cer_tau: float = 0.2
     gate_straight_through: bool = False
     stem_dilations: tuple[int, ...] = ()
+    max_pool: bool = False
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -207,6 +210,12 @@ def _thresholded_weights(gates: torch.Tensor, present: torch.Tensor, gate_th: fl
     logits = (gates / temperature).masked_fill(~kept, float("-inf"))  # (B, M)
     alphas = torch.softmax(logits.masked_fill(~kept.any(dim=1, keepdim=True), 0.0), dim=1)  # (B, M)
     return alphas * kept  # (B, M)
+
+
+def masked_max(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Maximum over valid time steps; 0 where a row has none. x (B, T, d), valid (B, T) -> (B, d)."""
+    peak = x.masked_fill(~valid.unsqueeze(-1), float("-inf")).amax(dim=1)  # (B, d)
+    return torch.where(valid.any(dim=1, keepdim=True), peak, torch.zeros_like(peak))  # (B, d)
 
 
 def uniform_weights(present: torch.Tensor) -> torch.Tensor:
@@ -371,8 +380,9 @@ class TouchFormer(nn.Module):
                                                              c.attn_dropout)
                                     for m in MODALITIES})
         self.head_drop = nn.Dropout(c.dropout)
-        self.classifier = nn.Linear(N_MOD * c.d_model, c.n_classes)
-        self.embedding_head = nn.Linear(N_MOD * c.d_model, c.emb_dim)
+        width = N_MOD * c.d_model * (2 if c.max_pool else 1)
+        self.classifier = nn.Linear(width, c.n_classes)
+        self.embedding_head = nn.Linear(width, c.emb_dim)
 
     def forward(self, batch: FeatureBatch) -> ModelOutput:
         c = self.config
@@ -409,9 +419,14 @@ class TouchFormer(nn.Module):
         z_intra = {m: self.intra[m](z_tilde[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
 
         # 5. pooling, alpha-weighted concat (eq. 12), heads
-        pooled = torch.cat([a[m].squeeze(-1) * masked_mean(z_intra[m], valid[m]) for m in MODALITIES],
-                           dim=1)  # (B, M d)
+        pooled = torch.cat([a[m].squeeze(-1) * self._pool(z_intra[m], valid[m]) for m in MODALITIES],
+                           dim=1)  # (B, M d), (B, 2 M d) with max_pool
         h = self.head_drop(pooled)  # (B, M d)
         logits = self.classifier(h)  # (B, K)
         embedding = F.normalize(self.embedding_head(h), dim=-1)  # (B, E)
         return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)
+
+    def _pool(self, z: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """Step 5's pooling of one modality: (B, T, d) -> (B, d), or (B, 2 d) with ``max_pool``."""
+        mean = masked_mean(z, valid)  # (B, d)
+        return torch.cat([mean, masked_max(z, valid)], dim=1) if self.config.max_pool else mean

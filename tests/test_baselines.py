@@ -71,6 +71,20 @@ def test_every_model_returns_the_same_record(name):
         assert torch.allclose(a, b, atol=1e-5)
 
 
+def test_mtcnn_mean_pooling_option_drops_the_maximum():
+    torch.manual_seed(0)
+    config, model = build_model("mtcnn", IN_DIMS, 3, max_pool=False, **TINY["mtcnn"])
+    model.eval()
+    assert model.fuse[0].in_features == 4 * config.channels + 4  # the mean of each sensor, and presence
+    batch = make_batch(seed=21, p_missing=0.3)
+    with torch.no_grad():
+        out, padded = model(batch), model(_pad(batch, 4))
+    for a, b in zip(out, padded):  # padding invariance
+        assert torch.allclose(a, b, atol=1e-5)
+    _, default = build_model("mtcnn", IN_DIMS, 3, **TINY["mtcnn"])
+    assert default.fuse[0].in_features == 2 * 4 * config.channels + 4  # mean and maximum by default
+
+
 def test_resample_valid_interpolates_the_valid_prefix():
     ramp = torch.arange(8, dtype=torch.float32).view(1, 8, 1)
     x = torch.cat([ramp, torch.full((1, 4, 1), 99.0)], dim=1)  # 4 padded steps of junk

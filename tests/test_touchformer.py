@@ -68,11 +68,13 @@ def train_and_score(model: torch.nn.Module, train: list[FeatureBatch], test: Fea
     return float((pred == test.labels).float().mean())
 
 
-@pytest.fixture(scope="module", params=[(), (1, 2)], ids=["paper_stem", "dilated_stem"])
+@pytest.fixture(scope="module", params=[{}, {"stem_dilations": (1, 2)}, {"stem_dilations": (1, 2), "max_pool": True}],
+                ids=["paper", "dilated_stem", "dilated_stem_max_pool"])
 def model(request) -> TouchFormer:
-    """The paper's single Conv1D per modality, and the option with residual dilated layers after it."""
+    """The paper's model (one Conv1D per modality, mean pooling), and the options of residual dilated layers
+    after that Conv1D and of mean+max pooling."""
     torch.manual_seed(0)
-    return TouchFormer(tiny_config(stem_dilations=request.param)).eval()
+    return TouchFormer(tiny_config(**request.param)).eval()
 
 
 # ----------------------------------------------------------------------------------------------------------
