@@ -27,7 +27,7 @@ from perception.features import FeatureBatch
 from perception.streams import MODALITIES
 from perception.touchformer import (ModelOutput, ResidualDilatedConvs, TouchFormer, TouchFormerConfig,
                                     TouchFormerFusionConfig, TouchFormerMagConfig, TouchFormerSoftGateConfig,
-                                    uniform_weights)
+                                    masked_max, masked_mean, uniform_weights)
 
 N_MOD = len(MODALITIES)
 
@@ -197,11 +197,7 @@ class MTCNNClassifier(nn.Module):
         for i, m in enumerate(MODALITIES):
             valid = ~batch.padding[m]  # (B, T)
             h = self.encoders[m](batch.x[m], valid)  # (B, T, ch)
-            n = valid.sum(dim=1, keepdim=True).clamp(min=1).to(h.dtype)  # (B, 1)
-            parts = [h.sum(dim=1) / n]  # the mean, (B, ch)
-            if self.config.max_pool:
-                peak = h.masked_fill(~valid.unsqueeze(-1), float("-inf")).amax(dim=1)  # (B, ch)
-                parts.append(torch.where(valid.any(dim=1, keepdim=True), peak, torch.zeros_like(peak)))  # (B, ch)
+            parts = [masked_mean(h, valid)] + ([masked_max(h, valid)] if self.config.max_pool else [])  # (B, ch) each
             pooled.append(torch.cat(parts, dim=1) * present[:, i, None])  # (B, 2 ch) or (B, ch)
         h = self.fuse(torch.cat(pooled + [present.float()], dim=1))  # (B, 2 ch)
         return _uniform_output(self.classifier(h), self.embedding_head(h), present)
