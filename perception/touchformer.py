@@ -421,7 +421,7 @@ class TouchFormer(nn.Module):
         # 5. pooling, alpha-weighted concat (eq. 12), heads
         pooled = torch.cat([a[m].squeeze(-1) * self._pool(z_intra[m], valid[m]) for m in MODALITIES],
                            dim=1)  # (B, M d), (B, 2 M d) with max_pool
-        h = self.head_drop(pooled)  # (B, M d)
+        h = self.head_drop(pooled)  # (B, width)
         logits = self.classifier(h)  # (B, K)
         embedding = F.normalize(self.embedding_head(h), dim=-1)  # (B, E)
         return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)
