@@ -44,6 +44,7 @@ from perception.features import FeatureBatch
 from perception.streams import MODALITIES
 
 N_MOD = len(MODALITIES)
+GATE_POOLS = ("input", "hidden")
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,10 @@ class TouchFormerConfig:
             single Conv1D) by default.
         max_pool: step 5 pools each modality by its masked mean and its maximum (as MTCNN does), concatenated,
             instead of the mean alone (eq. 12's pooling, the default).
+        gate_pool: where MAG pools X_m (T x d) over time to one gate g_m, which the paper leaves open:
+            "input" (default) takes the masked mean of X_m and applies eqs. 1-2 to it; "hidden" applies eq. 1
+            to every step, H_m = ReLU(W1 X_m + b1), and eq. 2 to the masked mean of H_m. The ReLU before the
+            mean lets the gate see the energy of zero-mean noise, which the mean of X_m averages away.
     """
 
     in_dims: tuple[int, ...]
@@ -99,6 +104,7 @@ class TouchFormerConfig:
     gate_straight_through: bool = False
     stem_dilations: tuple[int, ...] = ()
     max_pool: bool = False
+    gate_pool: str = "input"
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -113,6 +119,8 @@ class TouchFormerConfig:
             raise ValueError(f"gate_temperature must be positive, got {self.gate_temperature}")
         if any(d < 1 for d in self.stem_dilations):
             raise ValueError(f"stem_dilations must be positive, got {self.stem_dilations}")
+        if self.gate_pool not in GATE_POOLS:
+            raise ValueError(f"gate_pool must be one of {GATE_POOLS}, got {self.gate_pool!r}")
 
 
 @dataclass(frozen=True)
@@ -262,15 +270,20 @@ class ModalityEmbedding(nn.Module):
 
 
 class ModalityGate(nn.Module):
-    """MAG gate g = sigmoid(W2 ReLU(W1 x + b1) + b2) on a pooled modality feature."""
+    """MAG gate g = sigmoid(W2 ReLU(W1 X + b1) + b2) of one modality's features X (B, T, d), pooled over time
+    before W1 (``pool="input"``) or before W2 (``pool="hidden"``), see ``TouchFormerConfig.gate_pool``."""
 
-    def __init__(self, d_model: int, hidden: int) -> None:
+    def __init__(self, d_model: int, hidden: int, pool: str = "input") -> None:
         super().__init__()
         self.fc1 = nn.Linear(d_model, hidden)
         self.fc2 = nn.Linear(hidden, 1)
+        self.pool = pool
 
-    def forward(self, pooled: torch.Tensor) -> torch.Tensor:
-        h = F.relu(self.fc1(pooled))  # (B, h)
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        if self.pool == "hidden":
+            h = masked_mean(F.relu(self.fc1(x)), valid)  # (B, h)
+        else:
+            h = F.relu(self.fc1(masked_mean(x, valid)))  # (B, h)
         return torch.sigmoid(self.fc2(h)).squeeze(-1)  # (B,)
 
 
@@ -373,7 +386,7 @@ class TouchFormer(nn.Module):
                                                       c.stem_dilations)
                                     for i, m in enumerate(MODALITIES)})
         self.emb_drop = nn.Dropout(c.emb_dropout)
-        self.gate = ModalityGate(c.d_model, c.gate_hidden)
+        self.gate = ModalityGate(c.d_model, c.gate_hidden, c.gate_pool)
         self.cross = nn.ModuleDict({f"{tgt}_from_{src}": CrossModalAttention(c.d_model, c.n_heads, c.attn_dropout)
                                     for tgt in MODALITIES for src in MODALITIES if src != tgt})
         self.intra = nn.ModuleDict({m: IntraModalTransformer(c.d_model, c.n_heads, c.n_layers, c.dropout,
@@ -393,8 +406,7 @@ class TouchFormer(nn.Module):
         x_hat = {m: self.embed[m](batch.x[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
 
         # 2. modality-adaptive gating
-        pooled_in = torch.stack([masked_mean(x_hat[m], valid[m]) for m in MODALITIES], dim=1)  # (B, M, d)
-        gates = self.gate(pooled_in) * present  # (B, M), 0 for missing
+        gates = torch.stack([self.gate(x_hat[m], valid[m]) for m in MODALITIES], dim=1) * present  # (B, M), 0 missing
         if c.use_mag:
             alphas = mag_weights(gates, present, c.gate_th, c.gate_temperature,
                                  straight_through=c.gate_straight_through and self.training)  # (B, M)

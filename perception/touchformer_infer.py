@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from perception.features import FeatureBatch
 from perception.streams import MODALITIES
 from perception.touchformer import (N_MOD, CrossModalAttention, ModelOutput, TouchFormer, mag_weights,
-                                    masked_mean, sinusoidal_pe, uniform_weights)
+                                    masked_max, masked_mean, sinusoidal_pe, uniform_weights)
 
 # (target, source) pairs grouped by target, MODALITIES order: pair p has target PAIR_TARGET[p]
 PAIRS = tuple((tgt, src) for tgt in MODALITIES for src in MODALITIES if src != tgt)
@@ -114,8 +114,7 @@ class FusedTouchFormer(nn.Module):
 
         # 1.-2. temporal convolution and gating, as in the reference model
         x_hat = {m: ref.embed[m](batch.x[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
-        pooled_in = torch.stack([masked_mean(x_hat[m], valid[m]) for m in MODALITIES], dim=1)  # (B, M, d)
-        gates = ref.gate(pooled_in) * present  # (B, M)
+        gates = torch.stack([ref.gate(x_hat[m], valid[m]) for m in MODALITIES], dim=1) * present  # (B, M)
         alphas = (mag_weights(gates, present, c.gate_th, c.gate_temperature) if c.use_mag
                   else uniform_weights(present))  # (B, M)
 
@@ -125,7 +124,8 @@ class FusedTouchFormer(nn.Module):
         z0 = torch.stack([F.pad(x_hat[m] + self._positional(x_hat[m].shape[1]), (0, 0, 0, t_max - x_hat[m].shape[1]))
                           for m in MODALITIES])  # (M, B, T, d)
         z0 = z0 * alphas.t()[:, :, None, None]  # Z_m = alpha_m (X_m + PE)
-        key_valid = torch.stack([F.pad(valid[m], (0, t_max - valid[m].shape[1])) for m in MODALITIES])  # (M, B, T)
+        steps_valid = torch.stack([F.pad(valid[m], (0, t_max - valid[m].shape[1])) for m in MODALITIES])  # (M, B, T)
+        key_valid = steps_valid.clone()
         key_valid[:, :, 0] |= ~key_valid.any(dim=2)  # a row without valid keys attends to its first step
 
         # 3. inter-modal cross-attention, all 12 (target, source) pairs at once
@@ -151,9 +151,11 @@ class FusedTouchFormer(nn.Module):
         z = F.layer_norm(z, (d,), eps=self.eps) * self.lnf_w + self.lnf_b  # (M, B T, d)
 
         # 5. pooling, alpha-weighted concat (eq. 12), heads
-        w = torch.stack([F.pad(valid[m], (0, t_max - valid[m].shape[1])) for m in MODALITIES]).to(z.dtype)  # (M, B, T)
-        pooled = (z.reshape(shape) * w[..., None]).sum(dim=2) / w.sum(dim=2, keepdim=True).clamp(min=1.0)  # (M, B, d)
-        pooled = (pooled * alphas.t()[:, :, None]).transpose(0, 1).reshape(b, N_MOD * d)  # (B, M d)
+        z, w = z.reshape(N_MOD * b, t_max, d), steps_valid.reshape(N_MOD * b, t_max)  # (M B, T, d), (M B, T)
+        pooled = masked_mean(z, w)  # (M B, d)
+        if c.max_pool:
+            pooled = torch.cat([pooled, masked_max(z, w)], dim=1)  # (M B, 2 d)
+        pooled = (pooled.reshape(N_MOD, b, -1) * alphas.t()[:, :, None]).transpose(0, 1).reshape(b, -1)  # (B, M d)
         logits = ref.classifier(pooled)  # (B, K)
         embedding = F.normalize(ref.embedding_head(pooled), dim=-1)  # (B, E)
         return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)

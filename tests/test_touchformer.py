@@ -13,8 +13,8 @@ import torch
 from perception.features import FeatureBatch, FeatureConfig, collate, feature_dims, featurize, fit_norm_stats
 from perception.losses import total_loss
 from perception.streams import MODALITIES
-from perception.touchformer import (ModelOutput, TouchFormer, TouchFormerConfig, TouchFormerFusionConfig,
-                                    mag_weights)
+from perception.touchformer import (GATE_POOLS, ModalityGate, ModelOutput, TouchFormer, TouchFormerConfig,
+                                    TouchFormerFusionConfig, mag_weights)
 from tests.test_features import labels_of, make_synthetic_strokes
 
 torch.set_num_threads(2)
@@ -68,11 +68,12 @@ def train_and_score(model: torch.nn.Module, train: list[FeatureBatch], test: Fea
     return float((pred == test.labels).float().mean())
 
 
-@pytest.fixture(scope="module", params=[{}, {"stem_dilations": (1, 2)}, {"stem_dilations": (1, 2), "max_pool": True}],
-                ids=["paper", "dilated_stem", "dilated_stem_max_pool"])
+@pytest.fixture(scope="module", params=[{}, {"stem_dilations": (1, 2)}, {"stem_dilations": (1, 2), "max_pool": True},
+                                        {"gate_pool": "hidden"}],
+                ids=["paper", "dilated_stem", "dilated_stem_max_pool", "hidden_gate_pool"])
 def model(request) -> TouchFormer:
     """The paper's model (one Conv1D per modality, mean pooling), and the options of residual dilated layers
-    after that Conv1D and of mean+max pooling."""
+    after that Conv1D, of mean+max pooling and of the gate pooled after its hidden layer."""
     torch.manual_seed(0)
     return TouchFormer(tiny_config(**request.param)).eval()
 
@@ -206,6 +207,25 @@ def test_straight_through_gate_only_while_training():
         torch.manual_seed(5)
         b = getattr(st, mode)()(batch)
         assert torch.allclose(a.logits, b.logits, atol=1e-6) and torch.equal(a.alphas == 0, b.alphas == 0)
+
+
+def test_hidden_gate_pool_sees_the_energy_of_zero_mean_noise():
+    # the same mean over time, one sequence flat and one with zero-mean noise on top
+    torch.manual_seed(6)
+    flat = torch.full((1, 40, 8), 0.2)  # (B, T, d)
+    noisy = flat + 2.0 * torch.randn(1, 40, 8)
+    noisy = noisy - noisy.mean(dim=1, keepdim=True) + flat.mean(dim=1, keepdim=True)  # the mean kept exactly
+    valid = torch.ones(1, 40, dtype=torch.bool)
+    gates = {}
+    for pool in GATE_POOLS:
+        torch.manual_seed(7)
+        gate = ModalityGate(8, 16, pool)
+        with torch.no_grad():
+            gates[pool] = (float(gate(flat, valid)), float(gate(noisy, valid)))
+    assert gates["input"][0] == pytest.approx(gates["input"][1], abs=1e-6)  # the mean hides the noise
+    assert abs(gates["hidden"][0] - gates["hidden"][1]) > 0.01  # the per-step ReLU does not
+    with pytest.raises(ValueError, match="gate_pool"):
+        tiny_config(gate_pool="median")
 
 
 def test_gate_th_drops_low_gates_in_the_model():
