@@ -694,19 +694,23 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
                                "data_manifest_sha256": data.manifest_sha256, "fold": fold})
     ckpt = load_checkpoint(result.checkpoint_dir, device=resolve_device(config.device))
     # Temperature scaling on the validation strokes: the robot's confidence threshold then means what it says.
+    corruption = {"corruption_ratio": config.corruption_ratio, "corruption_std": config.corruption_std,
+                  "seed": config.seed + 12345}  # as evaluate's robustness runs corrupt their test strokes
     val_preds = predict(ckpt.model, featurize_records(pick(val_idx), ckpt.feature_config, progress, "featurize val"),
-                        feature_dims(ckpt.feature_config), stats=ckpt.norm_stats, device=resolve_device(config.device))
+                        feature_dims(ckpt.feature_config), stats=ckpt.norm_stats, device=resolve_device(config.device),
+                        **corruption)
     y_val = np.array([names.index(l) for l in labels_of(pick(val_idx), config.task)])
     temperature = fit_temperature(val_preds.logits, y_val)
     set_temperature(result.checkpoint_dir, temperature)
     feats = featurize_records(pick(test_idx), ckpt.feature_config, progress, "featurize test")
     preds = predict(ckpt.model, feats, feature_dims(ckpt.feature_config), stats=ckpt.norm_stats,
-                    device=resolve_device(config.device))
+                    device=resolve_device(config.device), **corruption)
     y = np.array([names.index(l) for l in labels_of(pick(test_idx), config.task)])
     metrics = {"task": config.task, "model": config.model, "fold": fold, "seed": config.seed,
                "test_accuracy": _accuracy(preds.pred, y), "test_g_mean": g_mean(y, preds.pred, range(len(names))),
                "n_train": len(train_idx), "n_val": len(val_idx), "n_test": len(test_idx),
                "split_by_object": config.split_by_object, "val_by_instance": config.val_by_instance,
+               "corruption_ratio": config.corruption_ratio,
                "best_epoch": result.best_epoch, "best_val_accuracy": result.best_val_accuracy,
                "temperature": temperature, "val_nll": nll(val_preds.logits, y_val),
                "val_nll_calibrated": nll(val_preds.logits, y_val, temperature),

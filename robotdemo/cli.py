@@ -94,7 +94,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          group_by_length=args.group_by_length,
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
-                         time_crop=args.time_crop,
+                         time_crop=args.time_crop, corruption_ratio=args.corruption_ratio,
                          model_overrides=overrides, feature_config=_feature_config(args.modalities))
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
@@ -112,14 +112,15 @@ def _feature_config(modalities: str | None) -> FeatureConfig:
 
 
 def _model_option(text: str) -> tuple[str, object]:
-    """``"d_model=32"`` -> ("d_model", 32): a Python literal after the first '='."""
+    """``"d_model=32"`` -> ("d_model", 32): a Python literal after the first '=' (a string in quotes:
+    ``"gate_pool='hidden'"``)."""
     key, sep, value = text.partition("=")
     if not sep or not key.strip():
         raise ValueError(f"--model-option expects KEY=VALUE (for example d_model=32), got {text!r}")
     try:
         parsed = ast.literal_eval(value.strip())
     except (ValueError, SyntaxError):
-        raise ValueError(f"--model-option {text!r}: {value!r} is not a number, bool or tuple") from None
+        raise ValueError(f"--model-option {text!r}: {value!r} is not a number, bool, tuple or quoted string") from None
     return key.strip(), parsed
 
 
@@ -286,6 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--time-crop", type=float, default=1.0, metavar="SHARE",
                        help="training: cut each stroke to a random window of at least this share of it "
                             "(default 1: off)")
+    train.add_argument("--corruption-ratio", type=float, default=0.0, metavar="P",
+                       help="robustness experiment: each modality of each stroke gets N(0, 1) noise (training std "
+                            "units) with probability P, in training, validation and test (default 0)")
     train.add_argument("--modalities", default=None, metavar="S,N,...",
                        help="train on these sensors only, comma-separated among sound, normal, friction, accel; "
                             "the checkpoint then ignores the others (default: all four)")

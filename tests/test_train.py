@@ -352,10 +352,34 @@ def test_train_cli_model_option_errors_are_one_line(tmp_path, capsys):
 
     assert _model_option("d_model=32") == ("d_model", 32)
     assert _model_option("kernel_sizes=(3, 3, 3, 3)") == ("kernel_sizes", (3, 3, 3, 3))
+    assert _model_option("gate_pool='hidden'") == ("gate_pool", "hidden")
     for bad, message in (("d_model", "expects KEY=VALUE"), ("d_model=wide", "not a number")):
         code = main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--model-option", bad])
         err = capsys.readouterr().err
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+def test_train_cli_corruption_ratio_corrupts_the_test_strokes_too(tmp_path, capsys):
+    from perception.dataset import load_dataset
+    from robotdemo.cli import main
+
+    recs = make_material_strokes(6, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.2)
+    write_dataset(tmp_path / "ds", recs, env="clean", seed=6)
+    code = main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--model", "mtcnn",
+                 "--epochs", "2", "--corruption-ratio", "1.0", "--model-option", "channels=8", "--quiet"])
+    capsys.readouterr()
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert code == 0 and metrics["corruption_ratio"] == 1.0
+    # the reported test accuracy is that of the test strokes with every sensor corrupted, as evaluate's curve
+    data = load_dataset(tmp_path / "ds").records
+    _, _, test_idx = task_split(data, TrainConfig(task="ssmc", seed=0))
+    ckpt = load_checkpoint(metrics["checkpoint_dir"])
+    y = np.array([ckpt.class_names.index(l) for l in labels_of([data[i] for i in test_idx], "ssmc")])
+    feats = featurize_records([data[i] for i in test_idx], ckpt.feature_config)
+    preds = {ratio: predict(ckpt.model, feats, feature_dims(ckpt.feature_config), stats=ckpt.norm_stats,
+                            corruption_ratio=ratio, seed=12345) for ratio in (0.0, 1.0)}
+    assert metrics["test_accuracy"] == pytest.approx(float(np.mean(preds[1.0].pred == y)))
+    assert not np.allclose(preds[0.0].logits, preds[1.0].logits)  # the corruption reached the strokes
 
 
 def test_train_cli_offers_every_registered_model():
