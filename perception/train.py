@@ -173,6 +173,8 @@ class TrainConfig:
             raise ValueError("epochs and batch_size must be >= 1")
         if not 0.0 <= self.corruption_ratio <= 1.0:
             raise ValueError(f"corruption_ratio must lie in [0, 1], got {self.corruption_ratio}")
+        if not self.corruption_std >= 0.0:
+            raise ValueError(f"corruption_std must be >= 0, got {self.corruption_std}")
         if not 0.0 <= self.modality_dropout < 1.0:
             raise ValueError(f"modality_dropout must lie in [0, 1), got {self.modality_dropout}")
         if not 0.0 < self.time_crop <= 1.0:
@@ -710,7 +712,7 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
                "test_accuracy": _accuracy(preds.pred, y), "test_g_mean": g_mean(y, preds.pred, range(len(names))),
                "n_train": len(train_idx), "n_val": len(val_idx), "n_test": len(test_idx),
                "split_by_object": config.split_by_object, "val_by_instance": config.val_by_instance,
-               "corruption_ratio": config.corruption_ratio,
+               "corruption_ratio": config.corruption_ratio, "corruption_std": config.corruption_std,
                "best_epoch": result.best_epoch, "best_val_accuracy": result.best_val_accuracy,
                "temperature": temperature, "val_nll": nll(val_preds.logits, y_val),
                "val_nll_calibrated": nll(val_preds.logits, y_val, temperature),

@@ -95,6 +95,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
                          time_crop=args.time_crop, corruption_ratio=args.corruption_ratio,
+                         corruption_std=args.corruption_std,
                          model_overrides=overrides, feature_config=_feature_config(args.modalities))
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
@@ -288,8 +289,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="training: cut each stroke to a random window of at least this share of it "
                             "(default 1: off)")
     train.add_argument("--corruption-ratio", type=float, default=0.0, metavar="P",
-                       help="robustness experiment: each modality of each stroke gets N(0, 1) noise (training std "
-                            "units) with probability P, in training, validation and test (default 0)")
+                       help="robustness experiment: each modality of each stroke gets N(0, STD^2) noise (training "
+                            "std units) with probability P, in training, validation and test (default 0)")
+    train.add_argument("--corruption-std", type=float, default=1.0, metavar="STD",
+                       help="the robustness experiment's noise std, units of the per-channel training std "
+                            "(default 1, as evaluate's)")
     train.add_argument("--modalities", default=None, metavar="S,N,...",
                        help="train on these sensors only, comma-separated among sound, normal, friction, accel; "
                             "the checkpoint then ignores the others (default: all four)")

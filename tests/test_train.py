@@ -369,7 +369,7 @@ def test_train_cli_corruption_ratio_corrupts_the_test_strokes_too(tmp_path, caps
                  "--epochs", "2", "--corruption-ratio", "1.0", "--model-option", "channels=8", "--quiet"])
     capsys.readouterr()
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert code == 0 and metrics["corruption_ratio"] == 1.0
+    assert code == 0 and metrics["corruption_ratio"] == 1.0 and metrics["corruption_std"] == 1.0
     # the reported test accuracy is that of the test strokes with every sensor corrupted, as evaluate's curve
     data = load_dataset(tmp_path / "ds").records
     _, _, test_idx = task_split(data, TrainConfig(task="ssmc", seed=0))
@@ -380,6 +380,11 @@ def test_train_cli_corruption_ratio_corrupts_the_test_strokes_too(tmp_path, caps
                             corruption_ratio=ratio, seed=12345) for ratio in (0.0, 1.0)}
     assert metrics["test_accuracy"] == pytest.approx(float(np.mean(preds[1.0].pred == y)))
     assert not np.allclose(preds[0.0].logits, preds[1.0].logits)  # the corruption reached the strokes
+    for bad, message in ((["--corruption-ratio", "1.5"], "corruption_ratio must lie in [0, 1]"),
+                         (["--corruption-std", "-1"], "corruption_std must be >= 0")):
+        code = main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "bad"), *bad])
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
 def test_train_cli_offers_every_registered_model():
