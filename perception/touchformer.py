@@ -24,6 +24,8 @@ Choices the paper leaves open, made here:
   (off by default) passes one as if it had been kept, without changing what the model computes.
 - ``stem_dilations`` (empty by default, the paper's single Conv1D) adds residual dilated Conv1D layers after
   step 1's Conv1D, as MTCNN's encoders have; an option for comparing per-sensor encoders, not the paper's.
+- Eqs. 1-2 apply W1 to X_m (T_m x d) and yield one g_m; where the time axis is pooled is not said. By default
+  the gate takes the masked mean of X_m; ``gate_pool="hidden"`` pools H_m after the ReLU instead.
 - Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
   attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
   with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real

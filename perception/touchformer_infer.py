@@ -155,7 +155,7 @@ class FusedTouchFormer(nn.Module):
         pooled = masked_mean(z, w)  # (M B, d)
         if c.max_pool:
             pooled = torch.cat([pooled, masked_max(z, w)], dim=1)  # (M B, 2 d)
-        pooled = (pooled.reshape(N_MOD, b, -1) * alphas.t()[:, :, None]).transpose(0, 1).reshape(b, -1)  # (B, M d)
+        pooled = (pooled.reshape(N_MOD, b, -1) * alphas.t()[:, :, None]).transpose(0, 1).reshape(b, -1)  # (B, [2] M d)
         logits = ref.classifier(pooled)  # (B, K)
         embedding = F.normalize(ref.embedding_head(pooled), dim=-1)  # (B, E)
         return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)
