@@ -44,8 +44,8 @@ from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ss
 from perception.features import feature_dims, keep_modalities
 from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
 from perception.streams import MODALITIES, MODALITY_SYMBOL
-from perception.train import (CHECKPOINT_DIR, DEVIATIONS, TrainConfig, TrainResult, featurize_records, predict,
-                             resolve_device, train)
+from perception.train import (CHECKPOINT_DIR, DEVIATIONS, TEST_CORRUPTION_SEED_OFFSET, TrainConfig, TrainResult,
+                             featurize_records, predict, resolve_device, train)
 
 PAPER: dict[str, Any] = {
     "table1": {  # accuracy %, G-mean; LMTHM, 4 modalities
@@ -291,8 +291,8 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
         test_feats = [keep_modalities(features[i], ckpt.feature_config.modalities) for i in test_idx]
         for drop in ("none",) + tuple(drops):
             preds = predict(ckpt.model, test_feats, dims, stats=ckpt.norm_stats, device=resolve_device(cfg.device),
-                            corruption_ratio=corruption, corruption_std=ctx.config.corruption_std, seed=seed + 12345,
-                            drop=() if drop == "none" else (drop,))
+                            corruption_ratio=corruption, corruption_std=ctx.config.corruption_std,
+                            seed=seed + TEST_CORRUPTION_SEED_OFFSET, drop=() if drop == "none" else (drop,))
             outputs[drop] = preds.pred
             if drop == "none":
                 emb = preds.embedding

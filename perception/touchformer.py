@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import torch
 import torch.nn as nn
@@ -281,12 +281,13 @@ class ModalityGate(nn.Module):
         self.fc2 = nn.Linear(hidden, 1)
         self.pool = pool
 
-    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    def forward(self, xs: Sequence[torch.Tensor], valids: Sequence[torch.Tensor]) -> torch.Tensor:
+        """The M modalities' features xs[m] (B, T_m, d) with their valid steps valids[m] (B, T_m) -> (B, M)."""
         if self.pool == "hidden":
-            h = masked_mean(F.relu(self.fc1(x)), valid)  # (B, h)
+            h = torch.stack([masked_mean(F.relu(self.fc1(x)), v) for x, v in zip(xs, valids)], dim=1)  # (B, M, h)
         else:
-            h = F.relu(self.fc1(masked_mean(x, valid)))  # (B, h)
-        return torch.sigmoid(self.fc2(h)).squeeze(-1)  # (B,)
+            h = F.relu(self.fc1(torch.stack([masked_mean(x, v) for x, v in zip(xs, valids)], dim=1)))  # (B, M, h)
+        return torch.sigmoid(self.fc2(h)).squeeze(-1)  # (B, M)
 
 
 class Attention(nn.Module):
@@ -408,7 +409,7 @@ class TouchFormer(nn.Module):
         x_hat = {m: self.embed[m](batch.x[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
 
         # 2. modality-adaptive gating
-        gates = torch.stack([self.gate(x_hat[m], valid[m]) for m in MODALITIES], dim=1) * present  # (B, M), 0 missing
+        gates = self.gate([x_hat[m] for m in MODALITIES], [valid[m] for m in MODALITIES]) * present  # (B, M), 0 missing
         if c.use_mag:
             alphas = mag_weights(gates, present, c.gate_th, c.gate_temperature,
                                  straight_through=c.gate_straight_through and self.training)  # (B, M)

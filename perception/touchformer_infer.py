@@ -114,7 +114,7 @@ class FusedTouchFormer(nn.Module):
 
         # 1.-2. temporal convolution and gating, as in the reference model
         x_hat = {m: ref.embed[m](batch.x[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
-        gates = torch.stack([ref.gate(x_hat[m], valid[m]) for m in MODALITIES], dim=1) * present  # (B, M)
+        gates = ref.gate([x_hat[m] for m in MODALITIES], [valid[m] for m in MODALITIES]) * present  # (B, M)
         alphas = (mag_weights(gates, present, c.gate_th, c.gate_temperature) if c.use_mag
                   else uniform_weights(present))  # (B, M)
 

@@ -47,6 +47,9 @@ from perception.streams import MODALITIES, StrokeRecord
 RESUME_DIR = "resume"
 CHECKPOINT_DIR = "checkpoint"
 RESULT_FILE = "train_result.json"
+# test-time corruption noise is drawn from seed + this offset (evaluate's robustness runs and train_command),
+# so that it differs from the training run's own draws
+TEST_CORRUPTION_SEED_OFFSET = 12345
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -697,7 +700,7 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
     ckpt = load_checkpoint(result.checkpoint_dir, device=resolve_device(config.device))
     # Temperature scaling on the validation strokes: the robot's confidence threshold then means what it says.
     corruption = {"corruption_ratio": config.corruption_ratio, "corruption_std": config.corruption_std,
-                  "seed": config.seed + 12345}  # as evaluate's robustness runs corrupt their test strokes
+                  "seed": config.seed + TEST_CORRUPTION_SEED_OFFSET}
     val_preds = predict(ckpt.model, featurize_records(pick(val_idx), ckpt.feature_config, progress, "featurize val"),
                         feature_dims(ckpt.feature_config), stats=ckpt.norm_stats, device=resolve_device(config.device),
                         **corruption)

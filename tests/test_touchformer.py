@@ -221,7 +221,7 @@ def test_hidden_gate_pool_sees_the_energy_of_zero_mean_noise():
         torch.manual_seed(7)
         gate = ModalityGate(8, 16, pool)
         with torch.no_grad():
-            gates[pool] = (float(gate(flat, valid)), float(gate(noisy, valid)))
+            gates[pool] = (float(gate([flat], [valid])), float(gate([noisy], [valid])))
     assert gates["input"][0] == pytest.approx(gates["input"][1], abs=1e-6)  # the mean hides the noise
     assert abs(gates["hidden"][0] - gates["hidden"][1]) > 0.01  # the per-step ReLU does not
     with pytest.raises(ValueError, match="gate_pool"):
