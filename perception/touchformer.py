@@ -149,8 +149,9 @@ class TouchFormerSoftGateConfig(TouchFormerConfig):
     """Variant "MAG without its threshold": ``gate_th = 0``, so no modality is dropped and the gates only set
     the softmax weights; CER on. Not in the paper: on our data the threshold dropped sensors on training and
     test strokes alike, and this variant scored 2-4 points higher on SSMC and USMC validation and 8 on
-    fine-grained (``reports/REPORT.md``, README). Its softmax keeps eq. 3's temperature 1, the setting it was
-    chosen at (``gate_temperature`` 0.2 was measured only on the thresholded TouchFormer)."""
+    fine-grained than TouchFormer at temperature 1 (the report before session 18's, README). Its softmax keeps
+    eq. 3's temperature 1, the setting it was chosen at (``gate_temperature`` 0.2 was measured only on the
+    thresholded TouchFormer)."""
 
     gate_th: float = 0.0
     gate_temperature: float = 1.0
