@@ -14,7 +14,8 @@ from perception.features import FeatureBatch, FeatureConfig, collate, feature_di
 from perception.losses import total_loss
 from perception.streams import MODALITIES
 from perception.touchformer import (GATE_POOLS, ModalityGate, ModelOutput, TouchFormer, TouchFormerConfig,
-                                    TouchFormerFusionConfig, mag_weights)
+                                    TouchFormerFusionConfig, TouchFormerMagConfig, TouchFormerSoftGateConfig,
+                                    mag_weights)
 from tests.test_features import labels_of, make_synthetic_strokes
 
 torch.set_num_threads(2)
@@ -182,12 +183,11 @@ def test_default_gate_temperature_lets_mag_weigh_a_sensor_down():
     """Eq. 3 at temperature 1 keeps each of four weights >= 1 / (3 e + 1) = 0.109 (one gate 0, three 1);
     TouchFormer's default temperature (0.2, a recorded deviation) can take one to 1 / (3 e^5 + 1) = 0.0022;
     the soft-gate variant keeps eq. 3's temperature."""
-    from perception.touchformer import TouchFormerMagConfig, TouchFormerSoftGateConfig
     gates = torch.tensor([[0.0, 1.0, 1.0, 1.0]])
     present = torch.ones(1, 4, dtype=torch.bool)
-    cfg = tiny_config()
-    assert TouchFormerMagConfig(**dataclasses.asdict(cfg)).gate_temperature == cfg.gate_temperature == 0.2
-    default = mag_weights(gates, present, gate_th=0.0, temperature=cfg.gate_temperature)
+    temperature = TouchFormerConfig(in_dims=IN_DIMS, n_classes=3).gate_temperature
+    assert temperature == TouchFormerMagConfig(in_dims=IN_DIMS, n_classes=3).gate_temperature == 0.2
+    default = mag_weights(gates, present, gate_th=0.0, temperature=temperature)
     paper = mag_weights(gates, present, gate_th=0.0, temperature=1.0)
     assert float(paper[0, 0]) == pytest.approx(1.0 / (3.0 * torch.e + 1.0), rel=1e-5)
     assert float(default[0, 0]) == pytest.approx(1.0 / (3.0 * torch.e ** 5 + 1.0), rel=1e-4)
