@@ -15,7 +15,8 @@
    The reference classifier reads raw streams, not features, so it is left out of this experiment.
 5. Clean -> fire shift (with ``fire_dir``): TouchFormer and the reference trained on all clean strokes and
    tested on the fire test part (zero-shot); TouchFormer fine-tuned from the clean checkpoint on the fire
-   training part (its normalisation kept); both trained on fire alone, for scale. Fire is split like SSMC.
+   training part (its normalisation kept); both trained on fire alone, for scale. Fire is split like SSMC,
+   once per seed, and every run is repeated per seed (mean ± std, as Table 1).
 
 Every run's checkpoint lives under ``out_dir/runs/``; a rerun with the same settings resumes or reuses them.
 Writes ``out_dir/REPORT.md``, ``out_dir/results.json`` and PNG figures (confusion matrices, robustness curve,
@@ -180,12 +181,12 @@ def _mean_std(values: Sequence[float]) -> dict[str, float]:
 
 @dataclass(frozen=True)
 class _FireData:
-    """The fire data set of the clean -> fire experiment, featurised once, with its SSMC split (first seed)."""
+    """The fire data set of the clean -> fire experiment, featurised once, with its SSMC split per seed."""
 
     data: Dataset
     features: list
     summaries: np.ndarray
-    split: tuple[np.ndarray, np.ndarray]
+    splits: Mapping[int, tuple[np.ndarray, np.ndarray]]
     class_names: tuple[str, ...]
 
 
@@ -662,10 +663,14 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
     if results.get("fire"):
         fire = results["fire"]
         lines += ["## Clean -> fire shift (category accuracy on the fire test part)", "",
-                  "| model | accuracy [%] | G-mean | combustible accuracy [%] |", "|---|---|---|---|"]
+                  f"Mean ± std over the seeds ({fire['split']}; each seed splits the fire strokes and trains every "
+                  "network again, the clean ones included); per seed in brackets.", "",
+                  "| model | accuracy [%] | per seed [%] | G-mean | combustible accuracy [%] |",
+                  "|---|---|---|---|---|"]
         for row in fire["rows"]:
-            lines.append(f"| {row['label']} | {100 * row['accuracy']:.2f} | {row['g_mean']:.2f} | "
-                         f"{100 * row['combustible_accuracy']:.2f} |")
+            per_seed = " ".join(f"{100 * r['accuracy']:.1f}" for r in row["runs"])
+            lines.append(f"| {row['label']} | {_pct(row['accuracy'])} | {per_seed} | {_g(row['g_mean'])} | "
+                         f"{_pct(row['combustible_accuracy'])} |")
         lines += ["", f"Paper (FISHM robot data, TouchFormer, SSMC): {PAPER['fishm']['without_noise']['ssmc']} % without, "
                       f"{PAPER['fishm']['with_noise']['ssmc']} % with environment noise.", ""]
     else:
@@ -771,7 +776,8 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     if workers > 1:  # targets first (Table 1 and its models' robustness), then the other variants, then fire
         table = [_TrainJob(m, t, name, seed, split) for m, t, name, seed, split in jobs]
         rob = [_TrainJob(m, "ssmc", f"seed{s0}", s0, rob_split, float(p)) for m, p in rob_jobs]
-        fire_runs = [_fire_runs(ctx, m) for m in cfg.fire_models] if ctx.fire is not None else []
+        fire_runs = ([_fire_runs(ctx, m, s) for s in cfg.seeds for m in cfg.fire_models]
+                     if ctx.fire is not None else [])
         _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
                   + [j for j in table + rob if j.model not in cfg.models]
                   + [job for _, job in _single_sensor_jobs(ctx)]
@@ -873,59 +879,72 @@ def _load_fire(ctx: _Context, fire_dir: Path) -> _FireData:
     features = featurize_records(fire.records, ctx.config.train.feature_config, ctx.progress, "featurize fire")
     summaries = np.stack([summary_features(r) for r in fire.records])
     return _FireData(data=fire, features=features, summaries=summaries,
-                     split=ssmc_split(fire.records, ctx.config.seeds[0]), class_names=names)
+                     splits={s: ssmc_split(fire.records, s) for s in ctx.config.seeds}, class_names=names)
 
 
-def _fire_runs(ctx: _Context, model: str) -> dict[str, _TrainJob]:
-    """The three runs of ``model`` in the clean -> fire experiment: ``clean`` (all clean strokes, validation
-    carved from them), ``finetuned`` (from the clean checkpoint, on the fire training part) and ``scratch``
-    (fire training part only)."""
+def _fire_runs(ctx: _Context, model: str, seed: int) -> dict[str, _TrainJob]:
+    """The three runs of ``model`` with ``seed`` in the clean -> fire experiment: ``clean`` (all clean strokes,
+    validation carved from them), ``finetuned`` (from the clean checkpoint, on the fire training part of the
+    seed's split) and ``scratch`` (that fire training part only)."""
     assert ctx.fire is not None
-    cfg, fire, s = ctx.config, ctx.fire, ctx.config.seeds[0]
+    cfg, fire, s = ctx.config, ctx.fire, seed
     clean = _TrainJob(model, "ssmc", "all", s, (np.arange(len(ctx.data.records)), np.zeros(0, dtype=np.int64)),
-                      run_name=f"fire/clean_{model}", class_names=fire.class_names)
+                      run_name=f"fire/seed{s}/clean_{model}", class_names=fire.class_names)
     on_fire = dict(source="fire", class_names=fire.class_names)
     tune = (("init_checkpoint", str(clean.run_dir(ctx) / CHECKPOINT_DIR)), ("epochs", cfg.fine_tune_epochs),
             ("lr", cfg.fine_tune_lr))
     return {"clean": clean,
-            "finetuned": _TrainJob(model, "ssmc", "fire", s, fire.split, run_name=f"fire/finetuned_{model}",
+            "finetuned": _TrainJob(model, "ssmc", "fire", s, fire.splits[s], run_name=f"fire/seed{s}/finetuned_{model}",
                                    train_changes=tune, **on_fire),
-            "scratch": _TrainJob(model, "ssmc", "fire", s, fire.split, run_name=f"fire/scratch_{model}", **on_fire)}
+            "scratch": _TrainJob(model, "ssmc", "fire", s, fire.splits[s], run_name=f"fire/seed{s}/scratch_{model}",
+                                 **on_fire)}
 
 
 def _fire_experiment(ctx: _Context) -> dict[str, Any]:
+    """Each row (network or reference, and how it was trained) scored on the fire test part of every seed's
+    split: the per-seed figures and their mean ± std."""
     assert ctx.fire is not None
     cfg, fire = ctx.config, ctx.fire
-    names, (fire_train, fire_test) = fire.class_names, fire.split
+    names = fire.class_names
     combustible = {r.category: r.combustible for r in ctx.data.records}
-    y = np.array([names.index(fire.data.records[i].category) for i in fire_test])
-    rows = []
+    rows: dict[str, dict[str, Any]] = {}
 
-    def score(label: str, model: str, run_name: str, ckpt_dir: str | None, pred: np.ndarray | None = None) -> None:
+    def score(seed: int, label: str, model: str, run_name: str, ckpt_dir: str | None,
+              pred: np.ndarray | None = None) -> None:
+        fire_test = fire.splits[seed][1]
+        y = np.array([names.index(fire.data.records[i].category) for i in fire_test])
         if pred is None:
             ckpt = load_checkpoint(ckpt_dir, device=resolve_device(cfg.train.device))
             pred = predict(ckpt.model, [fire.features[i] for i in fire_test], feature_dims(ckpt.feature_config),
                            stats=ckpt.norm_stats, device=resolve_device(cfg.train.device)).pred
         comb_true = np.array([combustible[names[k]] for k in y])
         comb_pred = np.array([combustible[names[k]] for k in pred])
-        rows.append({"label": label, "model": model, "run": run_name, "accuracy": float(np.mean(pred == y)),
-                     "g_mean": g_mean(y, pred, range(len(names))),
-                     "combustible_accuracy": float(np.mean(comb_true == comb_pred)), "n_test": int(len(fire_test))})
+        row = rows.setdefault(label, {"label": label, "model": model, "runs": []})
+        row["runs"].append({"seed": seed, "run": run_name, "accuracy": float(np.mean(pred == y)),
+                            "g_mean": g_mean(y, pred, range(len(names))),
+                            "combustible_accuracy": float(np.mean(comb_true == comb_pred)),
+                            "n_test": int(len(fire_test))})
 
-    for model in cfg.fire_models:
-        label, runs = MODEL_LABEL.get(model, model), _fire_runs(ctx, model)
-        for kind, title in (("clean", "clean only (zero-shot on fire)"), ("finetuned", "clean + fine-tuned on fire"),
-                            ("scratch", "fire only")):
-            job = runs[kind]
-            score(f"{label}, {title}", model, job.run_name, _run_job(ctx, job)["checkpoint"])
     ref = ReferenceClassifier(ReferenceConfig()).pipeline.fit(ctx.summaries, [r.category for r in ctx.data.records])
-    score("reference, clean only (zero-shot on fire)", "reference", "", None,
-          np.array([names.index(str(p)) for p in ref.predict(fire.summaries[fire_test])]))
-    ref_fire = _run_job(ctx, _TrainJob("reference", "ssmc", "fire", cfg.seeds[0], fire.split,
-                                       run_name="fire/reference", source="fire", class_names=names))
-    score("reference, fire only", "reference", "", None, ref_fire["_y_pred"])
-    return {"split": f"ssmc seed{cfg.seeds[0]}", "n_fire_train": int(len(fire_train)),
-            "n_fire_test": int(len(fire_test)), "rows": rows}
+    for seed in cfg.seeds:
+        for model in cfg.fire_models:
+            label, runs = MODEL_LABEL.get(model, model), _fire_runs(ctx, model, seed)
+            for kind, title in (("clean", "clean only (zero-shot on fire)"),
+                                ("finetuned", "clean + fine-tuned on fire"), ("scratch", "fire only")):
+                job = runs[kind]
+                score(seed, f"{label}, {title}", model, job.run_name, _run_job(ctx, job)["checkpoint"])
+        fire_test = fire.splits[seed][1]
+        score(seed, "reference, clean only (zero-shot on fire)", "reference", "", None,
+              np.array([names.index(str(p)) for p in ref.predict(fire.summaries[fire_test])]))
+        ref_fire = _run_job(ctx, _TrainJob("reference", "ssmc", "fire", seed, fire.splits[seed],
+                                           run_name=f"fire/seed{seed}/reference", source="fire", class_names=names))
+        score(seed, "reference, fire only", "reference", "", None, ref_fire["_y_pred"])
+    for row in rows.values():
+        row.update({key: _mean_std([r[key] for r in row["runs"]])
+                    for key in ("accuracy", "g_mean", "combustible_accuracy")})
+    s0 = fire.splits[cfg.seeds[0]]
+    return {"split": "ssmc seeds " + ", ".join(map(str, cfg.seeds)), "n_fire_train": int(len(s0[0])),
+            "n_fire_test": int(len(s0[1])), "rows": list(rows.values())}
 
 
 def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,

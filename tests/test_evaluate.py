@@ -75,7 +75,7 @@ def test_quick_evaluation_writes_report(tmp_path):
     assert "One sensor at a time" in (out / "REPORT.md").read_text()
     assert len(saved["fire"]["rows"]) == 3 * 2 + 2  # three per network, two for the reference
     assert {row["model"] for row in saved["fire"]["rows"]} == {"touchformer", "touchformer_soft", "reference"}
-    assert all(0.0 <= row["accuracy"] <= 1.0 for row in saved["fire"]["rows"])
+    assert all(0.0 <= row["accuracy"]["mean"] <= 1.0 for row in saved["fire"]["rows"])
     # the reference classifier is a sanity floor that the toy data lets it reach
     assert saved["table1"]["ssmc"]["reference"]["accuracy"]["mean"] > 0.6
     report = (out / "REPORT.md").read_text()
@@ -126,14 +126,49 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
     assert sum(name.startswith("single_sensor/lstm/") for name in pretrained) == 4
     # the workers trained the fire runs too, fine-tuning after the clean run it starts from
     fire_runs = [name for name in pretrained if name.startswith("fire/")]
-    assert set(fire_runs) == {"fire/clean_lstm", "fire/scratch_lstm", "fire/finetuned_lstm"}
-    assert fire_runs[-1] == "fire/finetuned_lstm"
+    assert set(fire_runs) == {"fire/seed0/clean_lstm", "fire/seed0/scratch_lstm", "fire/seed0/finetuned_lstm"}
+    assert fire_runs[-1] == "fire/seed0/finetuned_lstm"
     assert runs[1]["fire"]["rows"] == runs[2]["fire"]["rows"] and len(runs[2]["fire"]["rows"]) == 3 + 2
     report = (tmp_path / "w2" / "REPORT.md").read_text()
     assert "Not run in this report (`--no-ablation`)" in report
     no_fire = dataclasses.replace(config, models=("reference",), robustness_models=())
     evaluate(tmp_path / "clean", tmp_path / "nofire", config=no_fire, progress=False)
     assert "no `--fire` data set given" in (tmp_path / "nofire" / "REPORT.md").read_text()
+
+
+def test_fire_shift_repeats_every_run_per_seed(tmp_path):
+    torch.set_num_threads(1)
+    clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
+    fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
+                                 env="fire")
+    write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
+    write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
+    config = dataclasses.replace(quick_config(), seeds=(0, 1), models=("reference",), ablation=False,
+                                 missing_modality=False, robustness_models=(), tsne=False, fire_models=("lstm",),
+                                 single_sensor_models=())
+    out = tmp_path / "report"
+    results = evaluate(tmp_path / "clean", out, config=config, progress=False, fire_dir=tmp_path / "fire")
+
+    rows = {row["label"]: row for row in results["fire"]["rows"]}
+    assert len(rows) == 3 + 2 and results["fire"]["split"] == "ssmc seeds 0, 1"
+    for row in rows.values():
+        assert [r["seed"] for r in row["runs"]] == [0, 1]
+        accuracies = [r["accuracy"] for r in row["runs"]]
+        assert row["accuracy"]["n"] == 2 and row["accuracy"]["mean"] == pytest.approx(np.mean(accuracies))
+        assert row["accuracy"]["std"] == pytest.approx(np.std(accuracies))
+    for seed in (0, 1):  # each seed trains its own clean model and fine-tunes from that one
+        for kind in ("clean", "finetuned", "scratch"):
+            assert (out / "runs" / "fire" / f"seed{seed}" / f"{kind}_lstm" / "checkpoint" / "model.safetensors").is_file()
+        tuned = json.loads((out / "runs" / "fire" / f"seed{seed}" / "finetuned_lstm" / "checkpoint" /
+                            "config.json").read_text())
+        assert f"fire/seed{seed}/clean_lstm" in json.dumps(tuned)
+    report = (out / "REPORT.md").read_text()
+    assert "Mean ± std over the seeds (ssmc seeds 0, 1" in report
+    assert f"| {_pct_text(rows['reference, fire only']['accuracy'])} |" in report
+
+
+def _pct_text(stat):
+    return f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
 
 
 def test_inference_benchmark_reports_latency(tmp_path):
