@@ -11,7 +11,8 @@
 3. Ablation: transformer fusion only / + MAG / + MAG + CER on the three tasks.
 4. Robustness: each modality of each sample is corrupted with probability p, in training and testing, by
    Gaussian noise of std ``corruption_std`` in units of the per-channel training feature std (so std 1 is
-   noise as strong as the feature's own spread), p = 0.0, 0.1, ..., 1.0, SSMC split of the first seed.
+   noise as strong as the feature's own spread), p = 0.0, 0.1, ..., 1.0, on the SSMC split of every seed
+   (mean and std over the seeds; p = 0 is Table 1's SSMC runs).
    The reference classifier reads raw streams, not features, so it is left out of this experiment.
 5. Clean -> fire shift (with ``fire_dir``): TouchFormer and the reference trained on all clean strokes and
    tested on the fire test part (zero-shot); TouchFormer fine-tuned from the clean checkpoint on the fire
@@ -105,10 +106,11 @@ class EvalConfig:
             scored higher than TouchFormer at temperature 1 on validation on every split (SSMC seeds 0-2, USMC
             folds 0-4, fine-grained seeds 0-2).
         missing_modality: test the USMC models with each modality removed.
-        robustness_models: models of the robustness curve (empty: skip it).
+        robustness_models: models of the robustness curve, each run at every p and seed (empty: skip it).
         corruption_ratios: p values of the robustness curve.
         corruption_std: corruption noise std, units of the per-channel training feature std.
-        fire_models: networks of the clean -> fire experiment (each: clean only, fine-tuned, fire only).
+        fire_models: networks of the clean -> fire experiment (each: clean only, fine-tuned, fire only; every
+            seed).
         single_sensor_models: networks trained and tested on one sensor at a time (SSMC, every seed; the other
             streams treated as missing, ``FeatureConfig.modalities``): what each sensor carries by itself and
             what fusing them adds (empty: skip it).
@@ -472,13 +474,18 @@ def _plot_confusion(path: Path, y_true: np.ndarray, y_pred: np.ndarray, names: S
     plt.close(fig)
 
 
-def _plot_robustness(path: Path, curves: Mapping[str, Mapping[str, float]]) -> None:
+def _plot_robustness(path: Path, curves: Mapping[str, Mapping[str, float]],
+                     stds: Mapping[str, Mapping[str, float]]) -> None:
+    """Mean accuracy against p, one line per model, with a band of ± one std over the seeds."""
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     for model, curve in curves.items():
         ps = sorted(curve, key=float)
-        ax.plot([float(p) for p in ps], [100 * curve[p] for p in ps], marker="o", label=MODEL_LABEL.get(model, model))
+        x, mean = np.array([float(p) for p in ps]), np.array([100 * curve[p] for p in ps])
+        std = np.array([100 * stds[model][p] for p in ps])
+        line, = ax.plot(x, mean, marker="o", label=MODEL_LABEL.get(model, model))
+        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.12, linewidth=0)
     ax.set_xlabel("corruption ratio p")
     ax.set_ylabel("SSMC test accuracy [%]")
     ax.set_title("Gaussian noise on random modalities (train and test)", fontsize=9)
@@ -636,9 +643,16 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
         ps = sorted({p for curve in rob["curves"].values() for p in curve}, key=float)
         lines += ["## Robustness to corrupted modalities (SSMC accuracy [%])", "",
                   f"Each modality of each sample gets N(0, {rob['corruption_std']}²) noise (units of the per-channel "
-                  "training feature std) with probability p, in training and testing. Figure: `robustness.png`.", "",
+                  "training feature std) with probability p, in training and testing. Mean over the seeds "
+                  f"({', '.join(map(str, rob['seeds']))}; each its own SSMC split), ± std in the second table. "
+                  "Figure: `robustness.png` (band: ± one std).", "",
                   "| model | " + " | ".join(f"p={p}" for p in ps) + " |", "|---|" + "---|" * len(ps)]
         for model, curve in rob["curves"].items():
+            lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
+                f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
+        lines += ["", "| std over the seeds | " + " | ".join(f"p={p}" for p in ps) + " |",
+                  "|---|" + "---|" * len(ps)]
+        for model, curve in rob["curves_std"].items():
             lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
                 f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
         lines += ["", f"Paper: {PAPER['robustness']}.", ""]
@@ -768,14 +782,13 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
             for model in dict.fromkeys(list(cfg.models) + ablation):
                 jobs.append((model, task, split_name, seed, split))
     rob_jobs = [(m, p) for p in cfg.corruption_ratios for m in cfg.robustness_models]
-    s0 = cfg.seeds[0]
-    rob_split = ssmc_split(records, s0) if rob_jobs else None  # the robustness curve's split (first seed)
+    rob_splits = {s: ssmc_split(records, s) for s in cfg.seeds} if rob_jobs else {}  # each seed's SSMC split
     if fire_dir is not None:
         ctx.fire = _load_fire(ctx, Path(fire_dir))
         provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=ctx.fire.data.manifest_sha256)
     if workers > 1:  # targets first (Table 1 and its models' robustness), then the other variants, then fire
         table = [_TrainJob(m, t, name, seed, split) for m, t, name, seed, split in jobs]
-        rob = [_TrainJob(m, "ssmc", f"seed{s0}", s0, rob_split, float(p)) for m, p in rob_jobs]
+        rob = [_TrainJob(m, "ssmc", f"seed{s}", s, rob_splits[s], float(p)) for s in cfg.seeds for m, p in rob_jobs]
         fire_runs = ([_fire_runs(ctx, m, s) for s in cfg.seeds for m in cfg.fire_models]
                      if ctx.fire is not None else [])
         _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
@@ -783,7 +796,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
                   + [job for _, job in _single_sensor_jobs(ctx)]
                   + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers)
         _pretrain(ctx, [r["finetuned"] for r in fire_runs], workers)  # these start from the clean checkpoints
-    bar = tqdm(total=len(jobs) + len(rob_jobs), desc="evaluate", disable=not progress)
+    bar = tqdm(total=len(jobs) + len(rob_jobs) * len(cfg.seeds), desc="evaluate", disable=not progress)
 
     per: dict[tuple[str, str], list] = {}
     for model, task, split_name, seed, split in jobs:
@@ -838,14 +851,19 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         figures.append("training_curves.png")
 
     if rob_jobs:
-        curves: dict[str, dict[str, float]] = {}
-        for model, p in rob_jobs:
-            bar.set_postfix_str(f"robustness {model} p={p}")
-            run = _run(ctx, model, "ssmc", rob_split, f"seed{s0}", s0, corruption=float(p))
-            curves.setdefault(model, {})[repr(float(p))] = run["accuracy"]
-            bar.update()
-        results["robustness"] = {"corruption_std": cfg.corruption_std, "curves": curves}
-        _plot_robustness(out_dir / "robustness.png", curves)
+        per_seed: dict[str, dict[str, list[float]]] = {}
+        for seed in cfg.seeds:
+            for model, p in rob_jobs:
+                bar.set_postfix_str(f"robustness {model} p={p} seed{seed}")
+                run = _run(ctx, model, "ssmc", rob_splits[seed], f"seed{seed}", seed, corruption=float(p))
+                per_seed.setdefault(model, {}).setdefault(repr(float(p)), []).append(run["accuracy"])
+                bar.update()
+        stats = {m: {p: _mean_std(acc) for p, acc in curve.items()} for m, curve in per_seed.items()}
+        curves = {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()}
+        curves_std = {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()}
+        results["robustness"] = {"corruption_std": cfg.corruption_std, "seeds": list(cfg.seeds), "curves": curves,
+                                 "curves_std": curves_std, "per_seed": per_seed}
+        _plot_robustness(out_dir / "robustness.png", curves, curves_std)
         figures.append("robustness.png")
     bar.close()
 

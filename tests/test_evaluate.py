@@ -64,6 +64,10 @@ def test_quick_evaluation_writes_report(tmp_path):
     assert max(run["val_accuracy_curve"]) == pytest.approx(run["best_val_accuracy"], abs=1e-4)
     for model in ("touchformer", "lstm", "mtcnn", "touchformer_soft"):
         assert set(saved["robustness"]["curves"][model]) == {"0.0", "0.5", "1.0"}
+    # p = 0 is Table 1's SSMC run (one seed in the quick run, so std 0)
+    assert saved["robustness"]["curves"]["touchformer"]["0.0"] == pytest.approx(
+        saved["table1"]["ssmc"]["touchformer"]["accuracy"]["mean"])
+    assert saved["robustness"]["curves_std"]["touchformer"] == {"0.0": 0.0, "0.5": 0.0, "1.0": 0.0}
     single = saved["single_sensor"]["touchformer_soft"]
     assert set(single) == {"sound", "normal", "friction", "accel", "all"}
     assert single["all"]["accuracy"] == saved["table1"]["ssmc"]["touchformer_soft"]["accuracy"]
@@ -136,7 +140,7 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
     assert "no `--fire` data set given" in (tmp_path / "nofire" / "REPORT.md").read_text()
 
 
-def test_fire_shift_repeats_every_run_per_seed(tmp_path):
+def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
     torch.set_num_threads(1)
     clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
     fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
@@ -144,8 +148,8 @@ def test_fire_shift_repeats_every_run_per_seed(tmp_path):
     write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
     write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
     config = dataclasses.replace(quick_config(), seeds=(0, 1), models=("reference",), ablation=False,
-                                 missing_modality=False, robustness_models=(), tsne=False, fire_models=("lstm",),
-                                 single_sensor_models=())
+                                 missing_modality=False, robustness_models=("lstm",), corruption_ratios=(0.0, 1.0),
+                                 tsne=False, fire_models=("lstm",), single_sensor_models=())
     out = tmp_path / "report"
     results = evaluate(tmp_path / "clean", out, config=config, progress=False, fire_dir=tmp_path / "fire")
 
@@ -162,8 +166,18 @@ def test_fire_shift_repeats_every_run_per_seed(tmp_path):
         tuned = json.loads((out / "runs" / "fire" / f"seed{seed}" / "finetuned_lstm" / "checkpoint" /
                             "config.json").read_text())
         assert f"fire/seed{seed}/clean_lstm" in json.dumps(tuned)
+    rob = results["robustness"]
+    assert rob["seeds"] == [0, 1]
+    for p in ("0.0", "1.0"):
+        accuracies = rob["per_seed"]["lstm"][p]
+        assert len(accuracies) == 2
+        assert rob["curves"]["lstm"][p] == pytest.approx(np.mean(accuracies))
+        assert rob["curves_std"]["lstm"][p] == pytest.approx(np.std(accuracies))
+        for seed in (0, 1):
+            assert (out / "runs" / "ssmc" / "lstm" / f"seed{seed}_p{p}" / "checkpoint" / "model.safetensors").is_file()
     report = (out / "REPORT.md").read_text()
     assert "Mean ± std over the seeds (ssmc seeds 0, 1" in report
+    assert "| std over the seeds | p=0.0 | p=1.0 |" in report
     assert f"| {_pct_text(rows['reference, fire only']['accuracy'])} |" in report
 
 
