@@ -678,7 +678,7 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
         fire = results["fire"]
         lines += ["## Clean -> fire shift (category accuracy on the fire test part)", "",
                   f"Mean ± std over the seeds ({fire['split']}; each seed splits the fire strokes and trains every "
-                  "network again, the clean ones included); per seed in brackets.", "",
+                  "network again, the clean ones included); the accuracy of each seed in its own column.", "",
                   "| model | accuracy [%] | per seed [%] | G-mean | combustible accuracy [%] |",
                   "|---|---|---|---|---|"]
         for row in fire["rows"]:
