@@ -141,6 +141,8 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
 
 
 def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
+    import perception.evaluate as evaluation
+
     torch.set_num_threads(1)
     clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
     fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
@@ -162,7 +164,8 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
         assert row["accuracy"]["std"] == pytest.approx(np.std(accuracies))
     for seed in (0, 1):  # each seed trains its own clean model and fine-tunes from that one
         for kind in ("clean", "finetuned", "scratch"):
-            assert (out / "runs" / "fire" / f"seed{seed}" / f"{kind}_lstm" / "checkpoint" / "model.safetensors").is_file()
+            run_dir = out / "runs" / "fire" / f"seed{seed}" / f"{kind}_lstm"
+            assert (run_dir / "checkpoint" / "model.safetensors").is_file()
         tuned = json.loads((out / "runs" / "fire" / f"seed{seed}" / "finetuned_lstm" / "checkpoint" /
                             "config.json").read_text())
         assert f"fire/seed{seed}/clean_lstm" in json.dumps(tuned)
@@ -178,11 +181,7 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
     report = (out / "REPORT.md").read_text()
     assert "Mean ± std over the seeds (ssmc seeds 0, 1" in report
     assert "| std over the seeds | p=0.0 | p=1.0 |" in report
-    assert f"| {_pct_text(rows['reference, fire only']['accuracy'])} |" in report
-
-
-def _pct_text(stat):
-    return f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
+    assert f"| {evaluation._pct(rows['reference, fire only']['accuracy'])} |" in report
 
 
 def test_inference_benchmark_reports_latency(tmp_path):
