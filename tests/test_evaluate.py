@@ -25,13 +25,19 @@ def test_g_mean_hand_example():
     assert g_mean([0, 0, 1, 1], [0, 2, 1, 1], labels=range(3)) == pytest.approx(0.5 ** 0.5)
 
 
-def test_quick_evaluation_writes_report(tmp_path):
-    torch.set_num_threads(1)
+def _write_toy_clean_and_fire(tmp_path):
+    """Write a small clean and fire data set to ``tmp_path / "clean"`` and ``/ "fire"``; return the clean strokes."""
     clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
     fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
                                  env="fire")
     write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
     write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
+    return clean
+
+
+def test_quick_evaluation_writes_report(tmp_path):
+    torch.set_num_threads(1)
+    clean = _write_toy_clean_and_fire(tmp_path)
     out = tmp_path / "report"
     results = evaluate(tmp_path / "clean", out, quick=True, fire_dir=tmp_path / "fire", progress=False,
                        command="robotdemo evaluate --quick")
@@ -97,11 +103,7 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
     import perception.evaluate as evaluation
 
     torch.set_num_threads(1)
-    clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
-    fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
-                                 env="fire")
-    write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
-    write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
+    _write_toy_clean_and_fire(tmp_path)
     config = dataclasses.replace(quick_config(), models=("touchformer", "lstm", "reference"), ablation=False,
                                  robustness_models=("lstm",), corruption_ratios=(0.0, 1.0), tsne=False,
                                  fire_models=("lstm",), single_sensor_models=("lstm",))
@@ -144,11 +146,7 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
     import perception.evaluate as evaluation
 
     torch.set_num_threads(1)
-    clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.25)
-    fire = make_material_strokes(1, n_categories=3, n_instances=2, n_objects=1, n_strokes=4, duration_s=0.25,
-                                 env="fire")
-    write_dataset(tmp_path / "clean", clean, env="clean", seed=0)
-    write_dataset(tmp_path / "fire", fire, env="fire", seed=1)
+    _write_toy_clean_and_fire(tmp_path)
     config = dataclasses.replace(quick_config(), seeds=(0, 1), models=("reference",), ablation=False,
                                  missing_modality=False, robustness_models=("lstm",), corruption_ratios=(0.0, 1.0),
                                  tsne=False, fire_models=("lstm",), single_sensor_models=())
