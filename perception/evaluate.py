@@ -11,8 +11,9 @@
 3. Ablation: transformer fusion only / + MAG / + MAG + CER on the three tasks.
 4. Robustness: each modality of each sample is corrupted with probability p, in training and testing, by
    Gaussian noise of std ``corruption_std`` in units of the per-channel training feature std (so std 1 is
-   noise as strong as the feature's own spread), p = 0.0, 0.1, ..., 1.0, on the SSMC split of every seed
-   (mean and std over the seeds; p = 0 is Table 1's SSMC runs).
+   noise as strong as the feature's own spread), p = 0.0, 0.1, ..., 1.0, at each noise intensity of
+   ``corruption_stds`` (the paper runs "different gaussian noise intensities"), on the SSMC split of every seed
+   (mean and std over the seeds; p = 0 is Table 1's SSMC runs, shared by every intensity).
    The reference classifier reads raw streams, not features, so it is left out of this experiment.
 5. Clean -> fire shift (with ``fire_dir``): TouchFormer and the reference trained on all clean strokes and
    tested on the fire test part (zero-shot); TouchFormer fine-tuned from the clean checkpoint on the fire
@@ -108,7 +109,10 @@ class EvalConfig:
         missing_modality: test the USMC models with each modality removed.
         robustness_models: models of the robustness curve, each run at every p and seed (empty: skip it).
         corruption_ratios: p values of the robustness curve.
-        corruption_std: corruption noise std, units of the per-channel training feature std.
+        corruption_stds: the noise intensities of the robustness curve (one curve each): noise std in units of
+            the per-channel training feature std. Std 1 hardly lowers any model (noise independent per frame
+            averages out over a stroke's frames); std 3 lowered every model by 5-9 points at p = 0.5 on
+            validation (session 17, SSMC seeds 0-2).
         fire_models: networks of the clean -> fire experiment (each: clean only, fine-tuned, fire only; every
             seed).
         single_sensor_models: networks trained and tested on one sensor at a time (SSMC, every seed; the other
@@ -131,7 +135,7 @@ class EvalConfig:
     missing_modality: bool = True
     robustness_models: tuple[str, ...] = ("touchformer", "lstm", "mtcnn", "touchformer_soft")
     corruption_ratios: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(11))
-    corruption_std: float = 1.0
+    corruption_stds: tuple[float, ...] = (1.0, 3.0)
     fire_models: tuple[str, ...] = ("touchformer", "touchformer_soft")
     single_sensor_models: tuple[str, ...] = ("touchformer_soft", "mtcnn")
     fine_tune_epochs: int = 20
@@ -217,18 +221,23 @@ class _TrainJob:
     seed: int
     split: tuple[np.ndarray, np.ndarray]
     corruption: float = 0.0
+    corruption_std: float = 1.0
     source: str = "clean"
     run_name: str | None = None
     class_names: tuple[str, ...] | None = None
     train_changes: tuple[tuple[str, Any], ...] = ()
 
     def run_dir(self, ctx: _Context) -> Path:
-        return _run_dir(ctx, self.model, self.task, self.split_name, self.corruption, self.run_name)
+        return _run_dir(ctx, self.model, self.task, self.split_name, self.corruption, self.run_name,
+                        self.corruption_std)
 
 
-def _run_dir(ctx: _Context, model: str, task: str, split_name: str, corruption: float, run_name: str | None) -> Path:
-    """The folder of one run: ``run_name``, or task/model/split_p<corruption> under ``out_dir/runs``."""
-    return ctx.out_dir / "runs" / (run_name or f"{task}/{model}/{split_name}_p{corruption:.1f}")
+def _run_dir(ctx: _Context, model: str, task: str, split_name: str, corruption: float, run_name: str | None,
+             corruption_std: float = 1.0) -> Path:
+    """The folder of one run: ``run_name``, or task/model/split_p<corruption>[_std<corruption_std>] under
+    ``out_dir/runs`` (the std only where there is corruption: p = 0 runs are shared by every intensity)."""
+    noise = f"_std{corruption_std:g}" if corruption > 0 else ""
+    return ctx.out_dir / "runs" / (run_name or f"{task}/{model}/{split_name}_p{corruption:.1f}{noise}")
 
 
 def _train_config(ctx: _Context, model: str, task: str, seed: int, **changes: Any) -> TrainConfig:
@@ -244,13 +253,16 @@ def _class_names(records, task: str) -> tuple[str, ...]:
 
 def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, split_name: str, seed: int,
                corruption: float, records, features, class_names: tuple[str, ...], run_name: str | None,
-               train_changes: Mapping[str, Any] | None) -> tuple[TrainResult, TrainConfig, np.ndarray]:
+               train_changes: Mapping[str, Any] | None, corruption_std: float = 1.0
+               ) -> tuple[TrainResult, TrainConfig, np.ndarray]:
     """Train (or reuse the finished run in) the run folder of one experiment cell; validation is carved from
-    ``train_idx``. Returns the training result, its config and the validation indices."""
+    ``train_idx``. Returns the training result, its config and the validation indices. ``corruption_std``
+    reaches the training config only where ``corruption`` > 0 (a run without noise is the same run whatever
+    the intensity)."""
     tr, val = validation_split(records, train_idx, task, seed, ctx.config.train.val_fraction)
-    cfg = _train_config(ctx, model, task, seed, corruption_ratio=corruption,
-                        corruption_std=ctx.config.corruption_std, **dict(train_changes or {}))
-    run_dir = _run_dir(ctx, model, task, split_name, corruption, run_name)
+    noise = {"corruption_ratio": corruption, **({"corruption_std": corruption_std} if corruption > 0 else {})}
+    cfg = _train_config(ctx, model, task, seed, **noise, **dict(train_changes or {}))
+    run_dir = _run_dir(ctx, model, task, split_name, corruption, run_name, corruption_std)
     res = train([records[i] for i in tr], [records[i] for i in val], cfg, run_dir, progress=False,
                 class_names=class_names, features_train=[features[i] for i in tr],
                 features_val=[features[i] for i in val], provenance=ctx.provenance)
@@ -260,9 +272,10 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
 def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarray], split_name: str, seed: int,
          corruption: float = 0.0, records=None, features=None, summaries=None, class_names=None,
          run_name: str | None = None, train_changes: Mapping[str, Any] | None = None,
-         drops: Sequence[str] = ()) -> dict[str, Any]:
-    """Train ``model`` on ``split[0]`` (validation carved from it) and test on ``split[1]``."""
-    key = (model, task, split_name, seed, corruption, run_name)
+         drops: Sequence[str] = (), corruption_std: float = 1.0) -> dict[str, Any]:
+    """Train ``model`` on ``split[0]`` (validation carved from it) and test on ``split[1]``, both corrupted
+    with ratio ``corruption`` and noise std ``corruption_std`` (:func:`perception.train.corrupt_batch`)."""
+    key = (model, task, split_name, seed, corruption, corruption_std if corruption > 0 else None, run_name)
     if key in ctx.cache:
         return ctx.cache[key]
     records = ctx.data.records if records is None else records
@@ -273,7 +286,8 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
     y = np.array([names.index(l) for l in labels])
     train_idx, test_idx = split
     result: dict[str, Any] = {"model": model, "task": task, "split": split_name, "seed": seed,
-                              "corruption_ratio": corruption, "n_train": int(len(train_idx)),
+                              "corruption_ratio": corruption, "corruption_std": corruption_std if corruption > 0
+                              else 0.0, "n_train": int(len(train_idx)),
                               "n_test": int(len(test_idx))}
     outputs = {}
     if model == "reference":
@@ -289,13 +303,13 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
         emb = None
     else:
         res, cfg, val = _train_run(ctx, model, task, train_idx, split_name, seed, corruption, records, features,
-                                   names, run_name, train_changes)
+                                   names, run_name, train_changes, corruption_std)
         ckpt = load_checkpoint(res.checkpoint_dir, device=resolve_device(cfg.device))
         dims = feature_dims(ckpt.feature_config)
         test_feats = [keep_modalities(features[i], ckpt.feature_config.modalities) for i in test_idx]
         for drop in ("none",) + tuple(drops):
             preds = predict(ckpt.model, test_feats, dims, stats=ckpt.norm_stats, device=resolve_device(cfg.device),
-                            corruption_ratio=corruption, corruption_std=ctx.config.corruption_std,
+                            corruption_ratio=corruption, corruption_std=corruption_std,
                             seed=seed + TEST_CORRUPTION_SEED_OFFSET, drop=() if drop == "none" else (drop,))
             outputs[drop] = preds.pred
             if drop == "none":
@@ -332,7 +346,7 @@ def _run_job(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     records, features, summaries = _source(ctx, job.source)
     return _run(ctx, job.model, job.task, job.split, job.split_name, job.seed, job.corruption, records=records,
                 features=features, summaries=summaries, class_names=job.class_names, run_name=job.run_name,
-                train_changes=dict(job.train_changes) or None)
+                train_changes=dict(job.train_changes) or None, corruption_std=job.corruption_std)
 
 
 def _single_sensor_jobs(ctx: _Context) -> list[tuple[str, _TrainJob]]:
@@ -386,8 +400,8 @@ def _pretrain_job(job: _TrainJob) -> str:
     records, features, _ = _source(ctx, job.source)
     names = job.class_names or _class_names(records, job.task)
     _train_run(ctx, job.model, job.task, job.split[0], job.split_name, job.seed, job.corruption, records, features,
-               names, job.run_name, dict(job.train_changes) or None)
-    return job.run_name or f"{job.task} {job.model} {job.split_name} p={job.corruption}"
+               names, job.run_name, dict(job.train_changes) or None, job.corruption_std)
+    return job.run_name or f"{job.task} {job.model} {job.split_name} p={job.corruption} std={job.corruption_std:g}"
 
 
 def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
@@ -474,23 +488,24 @@ def _plot_confusion(path: Path, y_true: np.ndarray, y_pred: np.ndarray, names: S
     plt.close(fig)
 
 
-def _plot_robustness(path: Path, curves: Mapping[str, Mapping[str, float]],
-                     stds: Mapping[str, Mapping[str, float]]) -> None:
-    """Mean accuracy against p, one line per model, with a band of ± one std over the seeds."""
+def _plot_robustness(path: Path, levels: Sequence[Mapping[str, Any]]) -> None:
+    """One panel per noise intensity: mean accuracy against p, one line per model, with a band of ± one std
+    over the seeds."""
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    for model, curve in curves.items():
-        ps = sorted(curve, key=float)
-        x, mean = np.array([float(p) for p in ps]), np.array([100 * curve[p] for p in ps])
-        std = np.array([100 * stds[model][p] for p in ps])
-        line, = ax.plot(x, mean, marker="o", label=MODEL_LABEL.get(model, model))
-        ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.12, linewidth=0)
-    ax.set_xlabel("corruption ratio p")
-    ax.set_ylabel("SSMC test accuracy [%]")
-    ax.set_title("Gaussian noise on random modalities (train and test)", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    fig, axes = plt.subplots(1, len(levels), figsize=(5.0 * len(levels), 3.8), sharey=True, squeeze=False)
+    for ax, level in zip(axes[0], levels):
+        for model, curve in level["curves"].items():
+            ps = sorted(curve, key=float)
+            x, mean = np.array([float(p) for p in ps]), np.array([100 * curve[p] for p in ps])
+            std = np.array([100 * level["curves_std"][model][p] for p in ps])
+            line, = ax.plot(x, mean, marker="o", label=MODEL_LABEL.get(model, model))
+            ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.12, linewidth=0)
+        ax.set_xlabel("corruption ratio p")
+        ax.set_title(f"Gaussian noise of std {level['corruption_std']:g} on random modalities", fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("SSMC test accuracy [%]")
+    axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -640,22 +655,22 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
 
     if results.get("robustness"):
         rob = results["robustness"]
-        ps = sorted({p for curve in rob["curves"].values() for p in curve}, key=float)
         lines += ["## Robustness to corrupted modalities (SSMC accuracy [%])", "",
-                  f"Each modality of each sample gets N(0, {rob['corruption_std']}²) noise (units of the per-channel "
-                  "training feature std) with probability p, in training and testing. Mean over the seeds "
-                  f"({', '.join(map(str, rob['seeds']))}; each its own SSMC split), ± std in the second table. "
-                  "Figure: `robustness.png` (band: ± one std).", "",
-                  "| model | " + " | ".join(f"p={p}" for p in ps) + " |", "|---|" + "---|" * len(ps)]
-        for model, curve in rob["curves"].items():
-            lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
-                f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
-        lines += ["", "| std over the seeds | " + " | ".join(f"p={p}" for p in ps) + " |",
-                  "|---|" + "---|" * len(ps)]
-        for model, curve in rob["curves_std"].items():
-            lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
-                f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
-        lines += ["", f"Paper: {PAPER['robustness']}.", ""]
+                  "Each modality of each sample gets N(0, std²) noise (std in units of the per-channel training "
+                  "feature std) with probability p, in training and testing, at each noise intensity "
+                  f"(std {', '.join(f'{s:g}' for s in rob['corruption_stds'])}). Mean over the seeds "
+                  f"({', '.join(map(str, rob['seeds']))}; each its own SSMC split), ± std in the second table of "
+                  "each intensity; p = 0 is Table 1's runs. Figure: `robustness.png` (band: ± one std).", ""]
+        for level in rob["levels"]:
+            ps = sorted({p for curve in level["curves"].values() for p in curve}, key=float)
+            for title, table in ((f"noise std {level['corruption_std']:g}", level["curves"]),
+                                 ("std over the seeds", level["curves_std"])):
+                lines += [f"| {title} | " + " | ".join(f"p={p}" for p in ps) + " |", "|---|" + "---|" * len(ps)]
+                for model, curve in table.items():
+                    lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
+                        f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
+                lines.append("")
+        lines += [f"Paper: {PAPER['robustness']}.", ""]
     else:
         lines += ["## Robustness to corrupted modalities", "", "Not run in this report (`--no-robustness`).", ""]
 
@@ -715,8 +730,9 @@ EVAL_DEVIATIONS: dict[str, str] = {
                    "object can fall on both sides, which favours SSMC over USMC."),
     "usmc_seeds": "USMC folds of the first seed only (k folds, as the paper); SSMC and fine-grained over all seeds.",
     "missing_modality": "modality removed at test time from models trained with all four (the paper does not say).",
-    "robustness_noise": ("noise std in units of the per-channel training feature std; the paper gives no "
-                         "intensity. SSMC split of the first seed; the reference classifier is not included."),
+    "robustness_noise": ("noise std in units of the per-channel training feature std, at std 1 and 3; the paper "
+                         "runs several intensities without giving them. SSMC split of every seed; the reference "
+                         "classifier is not included."),
     "fire_fine_tune": "fine-tuning keeps the clean model's feature normalisation and class list.",
     "baselines": ("LSTM and MTCNN are our re-implementations (perception/baselines.py); DDQN, DALNet and MMUSR "
                   "are not rerun."),
@@ -781,14 +797,16 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         for split_name, seed, split in _splits(ctx, task):
             for model in dict.fromkeys(list(cfg.models) + ablation):
                 jobs.append((model, task, split_name, seed, split))
-    rob_jobs = [(m, p) for p in cfg.corruption_ratios for m in cfg.robustness_models]
+    # (model, p, std); p = 0 once, shared by every intensity (Table 1's SSMC run)
+    rob_jobs = list(dict.fromkeys((m, float(p), std if p > 0 else 1.0) for std in cfg.corruption_stds
+                                  for p in cfg.corruption_ratios for m in cfg.robustness_models))
     rob_splits = {s: ssmc_split(records, s) for s in cfg.seeds} if rob_jobs else {}  # each seed's SSMC split
     if fire_dir is not None:
         ctx.fire = _load_fire(ctx, Path(fire_dir))
         provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=ctx.fire.data.manifest_sha256)
     if workers > 1:  # targets first (Table 1 and its models' robustness), then the other variants, then fire
         table = [_TrainJob(m, t, name, seed, split) for m, t, name, seed, split in jobs]
-        rob = [_TrainJob(m, "ssmc", f"seed{s}", s, rob_splits[s], float(p)) for s in cfg.seeds for m, p in rob_jobs]
+        rob = [_TrainJob(m, "ssmc", f"seed{s}", s, rob_splits[s], p, std) for s in cfg.seeds for m, p, std in rob_jobs]
         fire_runs = ([_fire_runs(ctx, m, s) for s in cfg.seeds for m in cfg.fire_models]
                      if ctx.fire is not None else [])
         _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
@@ -851,19 +869,25 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         figures.append("training_curves.png")
 
     if rob_jobs:
-        per_seed: dict[str, dict[str, list[float]]] = {}
+        accuracy: dict[tuple[str, float, float], list[float]] = {}
         for seed in cfg.seeds:
-            for model, p in rob_jobs:
-                bar.set_postfix_str(f"robustness {model} p={p} seed{seed}")
-                run = _run(ctx, model, "ssmc", rob_splits[seed], f"seed{seed}", seed, corruption=float(p))
-                per_seed.setdefault(model, {}).setdefault(repr(float(p)), []).append(run["accuracy"])
+            for model, p, std in rob_jobs:
+                bar.set_postfix_str(f"robustness {model} p={p} std={std:g} seed{seed}")
+                run = _run(ctx, model, "ssmc", rob_splits[seed], f"seed{seed}", seed, corruption=p, corruption_std=std)
+                accuracy.setdefault((model, p, std), []).append(run["accuracy"])
                 bar.update()
-        stats = {m: {p: _mean_std(acc) for p, acc in curve.items()} for m, curve in per_seed.items()}
-        curves = {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()}
-        curves_std = {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()}
-        results["robustness"] = {"corruption_std": cfg.corruption_std, "seeds": list(cfg.seeds), "curves": curves,
-                                 "curves_std": curves_std, "per_seed": per_seed}
-        _plot_robustness(out_dir / "robustness.png", curves, curves_std)
+        levels = []
+        for std in cfg.corruption_stds:
+            per_seed = {m: {repr(float(p)): accuracy[(m, float(p), std if p > 0 else 1.0)]
+                            for p in cfg.corruption_ratios} for m in cfg.robustness_models}
+            stats = {m: {p: _mean_std(acc) for p, acc in curve.items()} for m, curve in per_seed.items()}
+            levels.append({"corruption_std": std,
+                           "curves": {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()},
+                           "curves_std": {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()},
+                           "per_seed": per_seed})
+        results["robustness"] = {"seeds": list(cfg.seeds), "corruption_stds": list(cfg.corruption_stds),
+                                 "levels": levels}
+        _plot_robustness(out_dir / "robustness.png", levels)
         figures.append("robustness.png")
     bar.close()
 

@@ -68,12 +68,15 @@ def test_quick_evaluation_writes_report(tmp_path):
     run = saved["table1"]["ssmc"]["touchformer"]["runs"][0]
     assert len(run["val_accuracy_curve"]) == 2
     assert max(run["val_accuracy_curve"]) == pytest.approx(run["best_val_accuracy"], abs=1e-4)
-    for model in ("touchformer", "lstm", "mtcnn", "touchformer_soft"):
-        assert set(saved["robustness"]["curves"][model]) == {"0.0", "0.5", "1.0"}
-    # p = 0 is Table 1's SSMC run (one seed in the quick run, so std 0)
-    assert saved["robustness"]["curves"]["touchformer"]["0.0"] == pytest.approx(
-        saved["table1"]["ssmc"]["touchformer"]["accuracy"]["mean"])
-    assert saved["robustness"]["curves_std"]["touchformer"] == {"0.0": 0.0, "0.5": 0.0, "1.0": 0.0}
+    levels = saved["robustness"]["levels"]
+    assert [level["corruption_std"] for level in levels] == [1.0, 3.0] == saved["robustness"]["corruption_stds"]
+    for level in levels:
+        for model in ("touchformer", "lstm", "mtcnn", "touchformer_soft"):
+            assert set(level["curves"][model]) == {"0.0", "0.5", "1.0"}
+        # p = 0 is Table 1's SSMC run at every intensity (one seed in the quick run, so std 0)
+        assert level["curves"]["touchformer"]["0.0"] == pytest.approx(
+            saved["table1"]["ssmc"]["touchformer"]["accuracy"]["mean"])
+        assert level["curves_std"]["touchformer"] == {"0.0": 0.0, "0.5": 0.0, "1.0": 0.0}
     single = saved["single_sensor"]["touchformer_soft"]
     assert set(single) == {"sound", "normal", "friction", "accel", "all"}
     assert single["all"]["accuracy"] == saved["table1"]["ssmc"]["touchformer_soft"]["accuracy"]
@@ -125,7 +128,7 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
         for model in ("touchformer", "lstm", "reference"):
             assert (runs[1]["table1"][task][model]["accuracy"] == runs[2]["table1"][task][model]["accuracy"]), \
                 (task, model)
-    assert runs[1]["robustness"]["curves"] == runs[2]["robustness"]["curves"]
+    assert runs[1]["robustness"]["levels"] == runs[2]["robustness"]["levels"]
     single = {w: runs[w]["single_sensor"]["lstm"] for w in (1, 2)}
     for sensor in ("sound", "normal", "friction", "accel", "all"):
         assert single[1][sensor]["accuracy"] == single[2][sensor]["accuracy"]
@@ -169,16 +172,26 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
         assert f"fire/seed{seed}/clean_lstm" in json.dumps(tuned)
     rob = results["robustness"]
     assert rob["seeds"] == [0, 1]
-    for p in ("0.0", "1.0"):
-        accuracies = rob["per_seed"]["lstm"][p]
-        assert len(accuracies) == 2
-        assert rob["curves"]["lstm"][p] == pytest.approx(np.mean(accuracies))
-        assert rob["curves_std"]["lstm"][p] == pytest.approx(np.std(accuracies))
-        for seed in (0, 1):
-            assert (out / "runs" / "ssmc" / "lstm" / f"seed{seed}_p{p}" / "checkpoint" / "model.safetensors").is_file()
+    for level in rob["levels"]:
+        std = level["corruption_std"]
+        for p in ("0.0", "1.0"):
+            accuracies = level["per_seed"]["lstm"][p]
+            assert len(accuracies) == 2
+            assert level["curves"]["lstm"][p] == pytest.approx(np.mean(accuracies))
+            assert level["curves_std"]["lstm"][p] == pytest.approx(np.std(accuracies))
+            for seed in (0, 1):  # p = 0 is one run for every intensity; each intensity has its own noisy runs
+                name = f"seed{seed}_p{p}" + ("" if p == "0.0" else f"_std{std:g}")
+                run_dir = out / "runs" / "ssmc" / "lstm" / name
+                assert (run_dir / "checkpoint" / "model.safetensors").is_file()
+                if p != "0.0":
+                    trained = json.loads((run_dir / "checkpoint" / "config.json").read_text())
+                    assert trained["meta"]["train_config"]["corruption_std"] == std
+    weak, strong = (level["per_seed"]["lstm"] for level in rob["levels"])
+    assert weak["0.0"] == strong["0.0"] and weak["1.0"] != strong["1.0"]
     report = (out / "REPORT.md").read_text()
     assert "Mean ± std over the seeds (ssmc seeds 0, 1" in report
-    assert "| std over the seeds | p=0.0 | p=1.0 |" in report
+    assert report.count("| std over the seeds | p=0.0 | p=1.0 |") == 2
+    assert "| noise std 1 | p=0.0 | p=1.0 |" in report and "| noise std 3 | p=0.0 | p=1.0 |" in report
     assert f"| {evaluation._pct(rows['reference, fire only']['accuracy'])} |" in report
 
 
