@@ -110,9 +110,9 @@ class EvalConfig:
         robustness_models: models of the robustness curve, each run at every p and seed (empty: skip it).
         corruption_ratios: p values of the robustness curve.
         corruption_stds: the noise intensities of the robustness curve (one curve each): noise std in units of
-            the per-channel training feature std. Std 1 hardly lowers any model (noise independent per frame
-            averages out over a stroke's frames); std 3 lowered every model by 5-9 points at p = 0.5 on
-            validation (session 17, SSMC seeds 0-2).
+            the per-channel training feature std. Std 1 hardly lowers any model (from p = 0 to p = 1 by 2.8
+            points at most, mean over SSMC seeds 0-2, session 19's report); std 3 lowered every model by 5-9
+            points at p = 0.5 on validation (session 17, SSMC seeds 0-2).
         fire_models: networks of the clean -> fire experiment (each: clean only, fine-tuned, fire only; every
             seed).
         single_sensor_models: networks trained and tested on one sensor at a time (SSMC, every seed; the other
