@@ -445,6 +445,28 @@ def _public(run: Mapping[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in run.items() if not k.startswith("_")}
 
 
+def _failed_runs(runs: Iterable[Mapping[str, Any]], out_dir: Path | None = None) -> list[dict[str, Any]]:
+    """The network runs whose training accuracy never reached twice chance (2 / K for K classes) in any epoch:
+    runs that never learned (in session 20 one MTCNN run under strong noise kept the cross-entropy at ln K for
+    50 epochs), listed so that a mean over seeds that holds one is not read as the model's. Checkpoint paths
+    are given relative to ``out_dir`` where they lie under it."""
+    failed = []
+    for run in runs:
+        curve = run.get("train_accuracy_curve")
+        if not curve:
+            continue  # the reference classifier, or a run without a history
+        chance = 1.0 / len(run["_names"])
+        if max(curve) < 2.0 * chance:
+            checkpoint = Path(run["checkpoint"])
+            if out_dir is not None and checkpoint.is_relative_to(out_dir):
+                checkpoint = checkpoint.relative_to(out_dir)
+            failed.append({**{k: run[k] for k in ("model", "task", "split", "seed", "corruption_ratio",
+                                                   "corruption_std", "accuracy")},
+                           "checkpoint": checkpoint.as_posix(), "n_classes": len(run["_names"]),
+                           "max_train_accuracy": max(curve)})
+    return sorted(failed, key=lambda r: (r["task"], r["model"], r["checkpoint"]))
+
+
 def _summary(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return {"accuracy": _mean_std([r["accuracy"] for r in runs]), "g_mean": _mean_std([r["g_mean"] for r in runs]),
             "runs": [_public(r) for r in runs]}
@@ -719,6 +741,22 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                              f"{_pct(row['best_val_accuracy'])} | {_pct(row['test_accuracy'])} |")
         lines.append("")
 
+    if "failed_runs" in results:
+        lines += ["## Runs that never learned", "",
+                  "Network runs whose training accuracy stayed under twice chance (2 / K) in every epoch; each "
+                  "counts in the means above as it scored.", ""]
+        if results["failed_runs"]:
+            lines += ["| model | task | split | p | noise std | max training acc. [%] | test acc. [%] | run |",
+                      "|---|---|---|---|---|---|---|---|"]
+            for r in results["failed_runs"]:
+                noise = f"{r['corruption_std']:g}" if r["corruption_ratio"] > 0 else "-"
+                lines.append(f"| {MODEL_LABEL.get(r['model'], r['model'])} | {TASK_LABEL.get(r['task'], r['task'])} | "
+                             f"{r['split']} | {r['corruption_ratio']:g} | {noise} | "
+                             f"{100 * r['max_train_accuracy']:.1f} | {100 * r['accuracy']:.1f} | `{r['checkpoint']}` |")
+        else:
+            lines.append("None: every network run's training accuracy reached twice chance.")
+        lines.append("")
+
     lines += ["## Deviations from the paper", ""]
     lines += [f"- **{k}**: {v}" for k, v in results["deviations"].items()]
     lines += ["", "## Figures", ""] + [f"- `{f}`" for f in results["figures"]] + [""]
@@ -896,6 +934,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
             ctx, {m: per[("ssmc", m)] for m in cfg.single_sensor_models if ("ssmc", m) in per})
     if ctx.fire is not None:
         results["fire"] = _fire_experiment(ctx)
+    results["failed_runs"] = _failed_runs(ctx.cache.values(), out_dir)
     results["figures"] = figures
     results["seconds"] = time.perf_counter() - t_start
     (out_dir / "results.json").write_text(json.dumps(results, indent=2, default=_json_default), encoding="utf-8")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +24,26 @@ def test_g_mean_hand_example():
     assert g_mean(y_true, [0, 0, 0, 0, 2, 2]) == 0.0  # class 1 never recalled
     # a class absent from y_true has no recall and is skipped
     assert g_mean([0, 0, 1, 1], [0, 2, 1, 1], labels=range(3)) == pytest.approx(0.5 ** 0.5)
+
+
+def test_failed_runs_are_those_whose_training_never_reached_twice_chance():
+    from perception.evaluate import _failed_runs
+
+    def run(model, curve, n_classes=7, seed=0):
+        return {"model": model, "task": "ssmc", "split": f"seed{seed}", "seed": seed, "corruption_ratio": 1.0,
+                "corruption_std": 3.0, "accuracy": 0.135, "checkpoint": f"runs/{model}/seed{seed}/checkpoint",
+                "train_accuracy_curve": curve, "_names": tuple(range(n_classes))}
+
+    stuck = run("mtcnn", [0.142, 0.135, 0.143], seed=2)  # cross-entropy at ln 7: never above 1/7
+    learned = run("mtcnn", [0.142, 0.30, 0.85], seed=0)
+    barely = run("lstm", [0.10, 2 / 7])  # reaches twice chance: it learned something
+    reference = {**run("reference", []), "train_accuracy_curve": None}
+    failed = _failed_runs([learned, stuck, barely, reference])
+    assert [(r["model"], r["seed"]) for r in failed] == [("mtcnn", 2)]
+    assert failed[0]["max_train_accuracy"] == 0.143 and failed[0]["n_classes"] == 7
+    assert failed[0]["checkpoint"] == "runs/mtcnn/seed2/checkpoint" and "_names" not in failed[0]
+    assert _failed_runs([stuck], Path("runs"))[0]["checkpoint"] == "mtcnn/seed2/checkpoint"  # relative to out_dir
+    assert _failed_runs([run("lstm", [0.09, 0.095], n_classes=42)]) == []  # 42 classes: twice chance is 4.8 %
 
 
 def _write_toy_clean_and_fire(tmp_path):
@@ -99,6 +120,9 @@ def test_quick_evaluation_writes_report(tmp_path):
     # USMC test instances never appear in the training part of their fold
     for run in saved["table1"]["usmc"]["touchformer"]["runs"]:
         assert run["n_train"] + run["n_test"] == len(clean)
+    assert isinstance(saved["failed_runs"], list) and "## Runs that never learned" in report
+    for failed in saved["failed_runs"]:
+        assert failed["max_train_accuracy"] < 2.0 / failed["n_classes"]
     assert np.isfinite(saved["seconds"])
 
 
