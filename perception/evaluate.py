@@ -144,6 +144,10 @@ class EvalConfig:
     model_overrides: Mapping[str, tuple[tuple[str, Any], ...]] = field(default_factory=dict)
     tsne: bool = True
 
+    def __post_init__(self) -> None:
+        if not self.corruption_stds or not all(np.isfinite(s) and s > 0 for s in self.corruption_stds):
+            raise ValueError(f"corruption_stds must be one or more finite noise stds > 0, got {self.corruption_stds}")
+
 
 def quick_config() -> EvalConfig:
     """A tiny version for tests and smoke runs: 2 epochs, 1 seed, 2 folds, p in {0, 0.5, 1}, tiny models."""
@@ -1032,12 +1036,14 @@ def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, qu
                      fire_dir: str | os.PathLike | None = None, device: str = "auto",
                      seeds: Sequence[int] | None = None, models: Sequence[str] | None = None,
                      command: str = "", progress: bool = True, workers: int = 1, ablation: bool = True,
-                     robustness: bool = True) -> dict[str, Any]:
+                     robustness: bool = True, corruption_stds: Sequence[float] | None = None) -> dict[str, Any]:
     """``robotdemo evaluate``: run :func:`evaluate`, return a short summary (report path, headline accuracies).
-    ``ablation=False`` / ``robustness=False`` leave those experiments out (the report says so)."""
+    ``ablation=False`` / ``robustness=False`` leave those experiments out (the report says so);
+    ``corruption_stds`` replaces the robustness curve's noise intensities."""
     config = quick_config() if quick else EvalConfig()
     config = dataclasses.replace(config, ablation=ablation and config.ablation,
-                                 robustness_models=config.robustness_models if robustness else ())
+                                 robustness_models=config.robustness_models if robustness else (),
+                                 corruption_stds=tuple(float(s) for s in (corruption_stds or config.corruption_stds)))
     results = evaluate(data_dir, out_dir, quick=quick, models=models, seeds=seeds, fire_dir=fire_dir, device=device,
                        progress=progress, command=command or None, config=config, workers=workers)
     headline = {task: {m: s["accuracy"]["mean"] for m, s in per.items()} for task, per in results["table1"].items()}

@@ -131,7 +131,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     summary = evaluate_command(args.data, args.out, quick=args.quick, fire_dir=args.fire, device=args.device,
                                seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet,
                                workers=args.workers, ablation=not args.no_ablation,
-                               robustness=not args.no_robustness)
+                               robustness=not args.no_robustness, corruption_stds=args.corruption_stds)
     print(json.dumps(summary, indent=2, default=str))
     return 0
 
@@ -314,6 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="train the runs in this many processes first (one torch thread each)")
     evaluate.add_argument("--no-ablation", action="store_true", help="leave the ablation runs out")
     evaluate.add_argument("--no-robustness", action="store_true", help="leave the robustness curve out")
+    evaluate.add_argument("--corruption-stds", type=float, nargs="+", default=None, metavar="STD",
+                          help="the robustness curve's noise intensities, stds in units of the per-channel "
+                               "training feature std (default 1 3)")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(func=_cmd_evaluate)
 

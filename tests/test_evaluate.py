@@ -229,3 +229,22 @@ def test_inference_benchmark_reports_latency(tmp_path):
     assert result["batch4"]["strokes_per_s"] > 0 and isinstance(result["meets_target"], bool)
     with pytest.raises(KeyError, match="neither"):
         run_inference_benchmark("no-such-model", n=1)
+
+
+def test_evaluate_cli_takes_the_noise_intensities(tmp_path, capsys):
+    from robotdemo.cli import main
+
+    torch.set_num_threads(1)
+    _write_toy_clean_and_fire(tmp_path)
+    args = ["evaluate", "--data", str(tmp_path / "clean"), "--quick", "--no-ablation", "--quiet", "--seeds", "0"]
+    assert main([*args, "--out", str(tmp_path / "report"), "--corruption-stds", "2"]) == 0
+    capsys.readouterr()
+    saved = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert saved["robustness"]["corruption_stds"] == [2.0]
+    assert [level["corruption_std"] for level in saved["robustness"]["levels"]] == [2.0]
+    assert (tmp_path / "report" / "runs" / "ssmc" / "lstm" / "seed0_p0.5_std2").is_dir()
+    for bad in ("-1", "0", "nan"):
+        code = main([*args, "--out", str(tmp_path / "bad"), "--corruption-stds", "3", bad])
+        err = capsys.readouterr().err
+        assert code == 2 and "corruption_stds must be one or more finite noise stds > 0" in err
+        assert len(err.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
