@@ -236,11 +236,18 @@ class _TrainJob:
                         self.corruption_std)
 
 
+def _noise_std(corruption: float, corruption_std: float) -> float | None:
+    """The noise std a run with corruption ratio ``corruption`` uses: None without corruption, so that a p = 0
+    run is one run (one folder, one training config, one cache entry) whatever the intensity."""
+    return corruption_std if corruption > 0 else None
+
+
 def _run_dir(ctx: _Context, model: str, task: str, split_name: str, corruption: float, run_name: str | None,
              corruption_std: float = 1.0) -> Path:
     """The folder of one run: ``run_name``, or task/model/split_p<corruption>[_std<corruption_std>] under
     ``out_dir/runs`` (the std only where there is corruption: p = 0 runs are shared by every intensity)."""
-    noise = f"_std{corruption_std:g}" if corruption > 0 else ""
+    std = _noise_std(corruption, corruption_std)
+    noise = "" if std is None else f"_std{std:g}"
     return ctx.out_dir / "runs" / (run_name or f"{task}/{model}/{split_name}_p{corruption:.1f}{noise}")
 
 
@@ -264,7 +271,8 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     reaches the training config only where ``corruption`` > 0 (a run without noise is the same run whatever
     the intensity)."""
     tr, val = validation_split(records, train_idx, task, seed, ctx.config.train.val_fraction)
-    noise = {"corruption_ratio": corruption, **({"corruption_std": corruption_std} if corruption > 0 else {})}
+    std = _noise_std(corruption, corruption_std)
+    noise = {"corruption_ratio": corruption, **({} if std is None else {"corruption_std": std})}
     cfg = _train_config(ctx, model, task, seed, **noise, **dict(train_changes or {}))
     run_dir = _run_dir(ctx, model, task, split_name, corruption, run_name, corruption_std)
     res = train([records[i] for i in tr], [records[i] for i in val], cfg, run_dir, progress=False,
@@ -279,7 +287,8 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
          drops: Sequence[str] = (), corruption_std: float = 1.0) -> dict[str, Any]:
     """Train ``model`` on ``split[0]`` (validation carved from it) and test on ``split[1]``, both corrupted
     with ratio ``corruption`` and noise std ``corruption_std`` (:func:`perception.train.corrupt_batch`)."""
-    key = (model, task, split_name, seed, corruption, corruption_std if corruption > 0 else None, run_name)
+    std = _noise_std(corruption, corruption_std)
+    key = (model, task, split_name, seed, corruption, std, run_name)
     if key in ctx.cache:
         return ctx.cache[key]
     records = ctx.data.records if records is None else records
@@ -290,8 +299,8 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
     y = np.array([names.index(l) for l in labels])
     train_idx, test_idx = split
     result: dict[str, Any] = {"model": model, "task": task, "split": split_name, "seed": seed,
-                              "corruption_ratio": corruption, "corruption_std": corruption_std if corruption > 0
-                              else 0.0, "n_train": int(len(train_idx)),
+                              "corruption_ratio": corruption, "corruption_std": 0.0 if std is None else std,
+                              "n_train": int(len(train_idx)),
                               "n_test": int(len(test_idx))}
     outputs = {}
     if model == "reference":
@@ -911,16 +920,16 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         figures.append("training_curves.png")
 
     if rob_jobs:
-        accuracy: dict[tuple[str, float, float], list[float]] = {}
+        accuracy: dict[tuple[str, float, float | None], list[float]] = {}
         for seed in cfg.seeds:
             for model, p, std in rob_jobs:
                 bar.set_postfix_str(f"robustness {model} p={p} std={std:g} seed{seed}")
                 run = _run(ctx, model, "ssmc", rob_splits[seed], f"seed{seed}", seed, corruption=p, corruption_std=std)
-                accuracy.setdefault((model, p, std), []).append(run["accuracy"])
+                accuracy.setdefault((model, p, _noise_std(p, std)), []).append(run["accuracy"])
                 bar.update()
         levels = []
         for std in cfg.corruption_stds:
-            per_seed = {m: {repr(float(p)): accuracy[(m, float(p), std if p > 0 else 1.0)]
+            per_seed = {m: {repr(float(p)): accuracy[(m, float(p), _noise_std(p, std))]
                             for p in cfg.corruption_ratios} for m in cfg.robustness_models}
             stats = {m: {p: _mean_std(acc) for p, acc in curve.items()} for m, curve in per_seed.items()}
             levels.append({"corruption_std": std,
