@@ -15,7 +15,10 @@
    ``corruption_stds`` (the paper runs "different gaussian noise intensities"), on the SSMC split of every seed
    (mean and std over the seeds; p = 0 is Table 1's SSMC runs, shared by every intensity).
    The reference classifier reads raw streams, not features, so it is left out of this experiment.
-5. Clean -> fire shift (with ``fire_dir``): TouchFormer and the reference trained on all clean strokes and
+5. What the networks use (:mod:`perception.probes`): the Table-1 runs' test strokes altered at inference (frames
+   shuffled or reversed in time, sensors shifted against each other, each sensor taken from another stroke of
+   the same class); nothing is trained for it.
+6. Clean -> fire shift (with ``fire_dir``): TouchFormer and the reference trained on all clean strokes and
    tested on the fire test part (zero-shot); TouchFormer fine-tuned from the clean checkpoint on the fire
    training part (its normalisation kept); both trained on fire alone, for scale. Fire is split like SSMC,
    once per seed, and every run is repeated per seed (mean ± std, as Table 1).
@@ -45,6 +48,7 @@ from perception.checkpoint import load_checkpoint
 from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ssmc_split, usmc_folds,
                                 validation_split)
 from perception.features import feature_dims, keep_modalities
+from perception.probes import ALTERATIONS, alter, swap_summaries
 from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
 from perception.streams import MODALITIES, MODALITY_SYMBOL
 from perception.train import (CHECKPOINT_DIR, DEVIATIONS, TEST_CORRUPTION_SEED_OFFSET, TrainConfig, TrainResult,
@@ -107,6 +111,7 @@ class EvalConfig:
             scored higher than TouchFormer at temperature 1 on validation on every split (SSMC seeds 0-2, USMC
             folds 0-4, fine-grained seeds 0-2).
         missing_modality: test the USMC models with each modality removed.
+        probes: test every Table-1 run on its test strokes altered at inference (:mod:`perception.probes`).
         robustness_models: models of the robustness curve, each run at every p and seed (empty: skip it).
         corruption_ratios: p values of the robustness curve.
         corruption_stds: the noise intensities of the robustness curve (one curve each): noise std in units of
@@ -133,6 +138,7 @@ class EvalConfig:
     ablation: bool = True
     ablation_models: tuple[str, ...] = ("touchformer_fusion", "touchformer_mag", "touchformer", "touchformer_soft")
     missing_modality: bool = True
+    probes: bool = True
     robustness_models: tuple[str, ...] = ("touchformer", "lstm", "mtcnn", "touchformer_soft")
     corruption_ratios: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(11))
     corruption_stds: tuple[float, ...] = (1.0, 3.0)
@@ -284,9 +290,12 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
 def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarray], split_name: str, seed: int,
          corruption: float = 0.0, records=None, features=None, summaries=None, class_names=None,
          run_name: str | None = None, train_changes: Mapping[str, Any] | None = None,
-         drops: Sequence[str] = (), corruption_std: float = 1.0) -> dict[str, Any]:
+         drops: Sequence[str] = (), corruption_std: float = 1.0, probes: bool = False) -> dict[str, Any]:
     """Train ``model`` on ``split[0]`` (validation carved from it) and test on ``split[1]``, both corrupted
-    with ratio ``corruption`` and noise std ``corruption_std`` (:func:`perception.train.corrupt_batch`)."""
+    with ratio ``corruption`` and noise std ``corruption_std`` (:func:`perception.train.corrupt_batch`); with
+    each modality of ``drops`` removed in turn and, with ``probes``, on the test strokes altered by each of
+    :data:`perception.probes.ALTERATIONS` (the reference classifier, which reads stream statistics rather than
+    frames, by ``swap`` only)."""
     std = _noise_std(corruption, corruption_std)
     key = (model, task, split_name, seed, corruption, std, run_name)
     if key in ctx.cache:
@@ -313,6 +322,10 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
                 j = MODALITIES.index(drop)
                 x[:, j * block:(j + 1) * block] = 0.0  # exactly what a missing stream yields
             outputs[drop] = np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
+        if probes:
+            swapped = alter([features[i] for i in test_idx], y[test_idx], "swap", _probe_rng(seed, "swap"))
+            x = swap_summaries(summaries[test_idx], swapped.sources)
+            outputs["probe:swap"] = np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
         emb = None
     else:
         res, cfg, val = _train_run(ctx, model, task, train_idx, split_name, seed, corruption, records, features,
@@ -328,6 +341,12 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
             if drop == "none":
                 emb = preds.embedding
                 result.update(_modality_weights(preds.alphas, test_feats))
+        for kind in ALTERATIONS if probes else ():
+            altered = alter(test_feats, y[test_idx], kind, _probe_rng(seed, kind))
+            outputs[f"probe:{kind}"] = predict(
+                ckpt.model, altered.features, dims, stats=ckpt.norm_stats, device=resolve_device(cfg.device),
+                corruption_ratio=corruption, corruption_std=corruption_std,
+                seed=seed + TEST_CORRUPTION_SEED_OFFSET).pred
         result.update(best_epoch=res.best_epoch, best_val_accuracy=res.best_val_accuracy,
                       checkpoint=str(res.checkpoint_dir), n_val=int(len(val)), epochs=len(res.history),
                       train_accuracy_curve=[round(float(h["train_accuracy"]), 4) for h in res.history],
@@ -340,10 +359,19 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
         return result
     result["accuracy"] = float(np.mean(outputs["none"] == y_test))
     result["g_mean"] = g_mean(y_test, outputs["none"], range(len(names)))
-    result["missing"] = {d: float(np.mean(p == y_test)) for d, p in outputs.items() if d != "none"}
+    result["missing"] = {d: float(np.mean(p == y_test)) for d, p in outputs.items()
+                         if d != "none" and not d.startswith("probe:")}
+    result["probes"] = {d.removeprefix("probe:"): float(np.mean(p == y_test)) for d, p in outputs.items()
+                        if d.startswith("probe:")}
     result["_y_true"], result["_y_pred"], result["_embedding"], result["_names"] = y_test, outputs["none"], emb, names
     ctx.cache[key] = result
     return result
+
+
+def _probe_rng(seed: int, kind: str) -> np.random.Generator:
+    """The draws of alteration ``kind`` on the test strokes of a split seeded ``seed``: the same for every model
+    of the split, so their accuracies compare on the same altered strokes."""
+    return np.random.default_rng((seed, ALTERATIONS.index(kind)))
 
 
 def _source(ctx: _Context, name: str) -> tuple[Sequence, list, np.ndarray]:
@@ -518,6 +546,36 @@ def _plot_confusion(path: Path, y_true: np.ndarray, y_pred: np.ndarray, names: S
     ax.set_ylabel("true")
     ax.set_title(title, fontsize=9)
     fig.colorbar(im, ax=ax, fraction=0.046, label="recall")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+PROBE_LABEL = {"intact": "as recorded", "time_shuffled": "frames shuffled", "time_reversed": "time reversed",
+               "desync": "sensors shifted apart", "swap": "sensors from other strokes"}
+
+
+def _plot_probes(path: Path, probes: Mapping[str, Mapping[str, Mapping[str, Mapping[str, float]]]]) -> None:
+    """One panel per task: each model's mean test accuracy on its test strokes as recorded and under each
+    alteration (grouped bars, error bars ± one std over the seeds or folds)."""
+    import matplotlib.pyplot as plt
+
+    kinds = list(PROBE_LABEL)
+    fig, axes = plt.subplots(1, len(probes), figsize=(5.2 * len(probes), 3.8), sharey=True, squeeze=False)
+    for ax, (task, per_model) in zip(axes[0], probes.items()):
+        models = list(per_model)
+        width = 0.8 / len(kinds)
+        for j, kind in enumerate(kinds):
+            xs = [i + (j - (len(kinds) - 1) / 2) * width for i, m in enumerate(models) if kind in per_model[m]]
+            stats = [per_model[m][kind] for m in models if kind in per_model[m]]
+            ax.bar(xs, [100 * st["mean"] for st in stats], width, yerr=[100 * st["std"] for st in stats],
+                   label=PROBE_LABEL[kind], capsize=2)
+        ax.set_xticks(range(len(models)), [MODEL_LABEL.get(m, m) for m in models], rotation=20, ha="right",
+                      fontsize=7)
+        ax.set_title(TASK_LABEL[task], fontsize=9)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][0].set_ylabel("test accuracy [%]")
+    axes[0][-1].legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -724,6 +782,25 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                 if sensor in single[m] else "-" for m in models) + " |")
         lines.append("")
 
+    if results.get("probes"):
+        kinds = list(PROBE_LABEL)
+        lines += ["## What the networks use (test accuracy [%] on altered test strokes)", "",
+                  "Each Table-1 run tested again on its own test strokes altered at inference, one kind of structure "
+                  "removed at a time (our diagnostic, not in the paper; nothing trained or selected; every model of "
+                  "a split sees the same altered strokes): each stream's frames shuffled in time, or reversed; each "
+                  "stream circularly shifted by its own random number of frames, so that what happens in one sensor "
+                  "no longer lines up with the others; each stream taken from another test stroke of the same "
+                  "class, so that the four sensors no longer come from one stroke (`perception/probes.py`). The "
+                  "reference classifier reads stream statistics, which do not depend on the order of frames, so it "
+                  "is tested on the last only. Mean ± std over seeds or folds.", ""]
+        for task, per_model in results["probes"].items():
+            lines += [f"**{TASK_LABEL[task]}**", "", "| model | " + " | ".join(PROBE_LABEL[k] for k in kinds) + " |",
+                      "|---|" + "---|" * len(kinds)]
+            for model, per_kind in per_model.items():
+                lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
+                    _pct(per_kind[k]) if k in per_kind else "-" for k in kinds) + " |")
+            lines.append("")
+
     if results.get("fire"):
         fire = results["fire"]
         lines += ["## Clean -> fire shift (category accuracy on the fire test part)", "",
@@ -871,13 +948,21 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     for model, task, split_name, seed, split in jobs:
         bar.set_postfix_str(f"{task} {model} {split_name}")
         drops = MODALITIES if (task == "usmc" and cfg.missing_modality and model in cfg.models) else ()
-        per.setdefault((task, model), []).append(_run(ctx, model, task, split, split_name, seed, drops=drops))
+        per.setdefault((task, model), []).append(_run(ctx, model, task, split, split_name, seed, drops=drops,
+                                                      probes=cfg.probes and model in cfg.models))
         bar.update()
     results["table1"] = {t: {m: _summary(per[(t, m)]) for m in cfg.models} for t in ("ssmc", "usmc", "fine")}
     if cfg.missing_modality:
         results["missing_modality"] = {
             m: {**{d: _mean_std([r["missing"][d] for r in per[("usmc", m)]]) for d in MODALITIES},
                 "none": _mean_std([r["accuracy"] for r in per[("usmc", m)]])} for m in cfg.models}
+    if cfg.probes:
+        results["probes"] = {t: {m: {"intact": _mean_std([r["accuracy"] for r in per[(t, m)]]),
+                                     **{k: _mean_std([r["probes"][k] for r in per[(t, m)]])
+                                        for k in ALTERATIONS if k in per[(t, m)][0]["probes"]}}
+                                 for m in cfg.models} for t in ("ssmc", "usmc", "fine")}
+        _plot_probes(out_dir / "probes.png", results["probes"])
+        figures.append("probes.png")
     if ablation:
         results["ablation"] = {m: {t: _mean_std([r["accuracy"] for r in per[(t, m)]]) for t in ("ssmc", "usmc", "fine")}
                                for m in ablation}

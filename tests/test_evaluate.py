@@ -121,6 +121,15 @@ def test_quick_evaluation_writes_report(tmp_path):
     for run in saved["table1"]["usmc"]["touchformer"]["runs"]:
         assert run["n_train"] + run["n_test"] == len(clean)
     assert isinstance(saved["failed_runs"], list) and "## Runs that never learned" in report
+    probes = saved["probes"]
+    assert set(probes) == {"ssmc", "usmc", "fine"} and (out / "probes.png").stat().st_size > 0
+    for task in probes:
+        for model in ("touchformer", "touchformer_soft", "lstm", "mtcnn"):
+            assert set(probes[task][model]) == {"intact", "time_shuffled", "time_reversed", "desync", "swap"}
+            assert probes[task][model]["intact"] == saved["table1"][task][model]["accuracy"]
+            assert all(0.0 <= st["mean"] <= 1.0 for st in probes[task][model].values())
+        assert set(probes[task]["reference"]) == {"intact", "swap"}  # statistics have no frame order
+    assert "## What the networks use" in report and "| sensors shifted apart | sensors from other strokes |" in report
     for failed in saved["failed_runs"]:
         assert failed["max_train_accuracy"] < 2.0 / failed["n_classes"]
     assert np.isfinite(saved["seconds"])
