@@ -28,6 +28,8 @@ Choices the paper leaves open, made here:
   the gate takes the masked mean of X_m; ``gate_pool="hidden"`` pools H_m after the ReLU instead.
 - ``gate_temperature`` divides the gates before eq. 3's softmax: 0.2 by default instead of the paper's implicit
   1 (``perception.train.DEVIATIONS``); ``touchformer_soft`` keeps 1.
+- The paper names no classifier head after eq. 12; ours is linear. ``head_mlp=True`` (off by default) puts
+  MulT's residual two-layer MLP (Tsai et al., 2019, which section 3.2 follows) between eq. 12 and both heads.
 - Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
   attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
   with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real
@@ -89,6 +91,10 @@ class TouchFormerConfig:
             "input" (default) takes the masked mean of X_m and applies eqs. 1-2 to it; "hidden" applies eq. 1
             to every step, H_m = ReLU(W1 X_m + b1), and eq. 2 to the masked mean of H_m. The ReLU before the
             mean lets the gate see the energy of zero-mean noise, which the mean of X_m averages away.
+        head_mlp: between eq. 12's fused feature Z and the heads, MulT's residual MLP
+            Z + W2 dropout(ReLU(W1 Z)) of width 4 d (8 d with ``max_pool``), so the heads can combine one
+            sensor's pooled features with another's non-linearly, as MTCNN's MLP head does. Off by default
+            (a linear head on Z; the paper names none).
     """
 
     in_dims: tuple[int, ...]
@@ -111,6 +117,7 @@ class TouchFormerConfig:
     stem_dilations: tuple[int, ...] = ()
     max_pool: bool = False
     gate_pool: str = "input"
+    head_mlp: bool = False
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -404,6 +411,8 @@ class TouchFormer(nn.Module):
                                     for m in MODALITIES})
         self.head_drop = nn.Dropout(c.dropout)
         width = N_MOD * c.d_model * (2 if c.max_pool else 1)
+        self.head_mlp = (nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Dropout(c.dropout),
+                                       nn.Linear(width, width)) if c.head_mlp else None)
         self.classifier = nn.Linear(width, c.n_classes)
         self.embedding_head = nn.Linear(width, c.emb_dim)
 
@@ -444,6 +453,8 @@ class TouchFormer(nn.Module):
         pooled = torch.cat([a[m].squeeze(-1) * self._pool(z_intra[m], valid[m]) for m in MODALITIES],
                            dim=1)  # (B, M d), (B, 2 M d) with max_pool
         h = self.head_drop(pooled)  # (B, width)
+        if self.head_mlp is not None:
+            h = h + self.head_mlp(h)  # (B, width), MulT's residual projection
         logits = self.classifier(h)  # (B, K)
         embedding = F.normalize(self.embedding_head(h), dim=-1)  # (B, E)
         return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)
