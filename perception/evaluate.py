@@ -315,17 +315,20 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
     if model == "reference":
         clf = ReferenceClassifier(ReferenceConfig(label="instance" if task == "fine" else "category"))
         clf.pipeline.fit(summaries[train_idx], [labels[i] for i in train_idx])
+
+        def classify(x: np.ndarray) -> np.ndarray:  # class indices of the summaries x
+            return np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
+
         block = summaries.shape[1] // len(MODALITIES)
         for drop in ("none",) + tuple(drops):
             x = summaries[test_idx].copy()
             if drop != "none":
                 j = MODALITIES.index(drop)
                 x[:, j * block:(j + 1) * block] = 0.0  # exactly what a missing stream yields
-            outputs[drop] = np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
+            outputs[drop] = classify(x)
         if probes:
             swapped = alter([features[i] for i in test_idx], y[test_idx], "swap", _probe_rng(seed, "swap"))
-            x = swap_summaries(summaries[test_idx], swapped.sources)
-            outputs["probe:swap"] = np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
+            outputs["probe:swap"] = classify(swap_summaries(summaries[test_idx], swapped.sources))
         emb = None
     else:
         res, cfg, val = _train_run(ctx, model, task, train_idx, split_name, seed, corruption, records, features,
@@ -839,7 +842,7 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
             lines += ["| model | task | split | p | noise std | max training acc. [%] | test acc. [%] | run |",
                       "|---|---|---|---|---|---|---|---|"]
             for r in results["failed_runs"]:
-                noise = f"{r['corruption_std']:g}" if r["corruption_ratio"] > 0 else "-"
+                noise = f"{r['corruption_std']:g}" if r["corruption_std"] else "-"  # 0 without corruption
                 lines.append(f"| {MODEL_LABEL.get(r['model'], r['model'])} | {TASK_LABEL.get(r['task'], r['task'])} | "
                              f"{r['split']} | {r['corruption_ratio']:g} | {noise} | "
                              f"{100 * r['max_train_accuracy']:.1f} | {100 * r['accuracy']:.1f} | `{r['checkpoint']}` |")
