@@ -144,6 +144,11 @@ class MTCNNConfig:
         cer_tau: CER temperature.
         max_pool: pool each sensor by its masked mean and maximum (True) or by its mean alone, as TouchFormer
             does (False; an option for comparing the two).
+        step_norm: a LayerNorm over the channels of every step of each sensor's encoder output before the
+            pooling, as TouchFormer's final LayerNorm does (an option for comparing the two; off by default).
+        mlp_head: the fused vector passes a hidden layer of 2 x channels (ReLU, dropout) before the heads (True,
+            the default); False puts the heads on the fused vector itself (after dropout), as TouchFormer's
+            linear head does (an option for comparing the two).
     """
 
     in_dims: tuple[int, ...]
@@ -156,6 +161,8 @@ class MTCNNConfig:
     cer_lambda: float = 0.0
     cer_tau: float = 0.2
     max_pool: bool = True
+    step_norm: bool = False
+    mlp_head: bool = True
 
     def __post_init__(self) -> None:
         if self.kernel_size % 2 == 0:
@@ -178,7 +185,7 @@ class DilatedTemporalEncoder(nn.Module):
 
 class MTCNNClassifier(nn.Module):
     """Per-modality dilated temporal CNNs, masked mean+max pooling (mean alone with ``max_pool=False``),
-    concatenation fusion, MLP head."""
+    concatenation fusion, MLP head (linear with ``mlp_head=False``)."""
 
     def __init__(self, config: MTCNNConfig) -> None:
         super().__init__()
@@ -186,17 +193,23 @@ class MTCNNClassifier(nn.Module):
         c = config
         self.encoders = nn.ModuleDict({m: DilatedTemporalEncoder(c.in_dims[i], c.channels, c.dilations,
                                                                  c.kernel_size) for i, m in enumerate(MODALITIES)})
+        self.step_norm = nn.ModuleDict({m: nn.LayerNorm(c.channels) if c.step_norm else nn.Identity()
+                                        for m in MODALITIES})
         width = N_MOD * (2 if c.max_pool else 1) * c.channels + N_MOD
-        self.fuse = nn.Sequential(nn.Linear(width, 2 * c.channels), nn.ReLU(), nn.Dropout(c.dropout))
-        self.classifier = nn.Linear(2 * c.channels, c.n_classes)
-        self.embedding_head = nn.Linear(2 * c.channels, c.emb_dim)
+        if c.mlp_head:
+            self.fuse = nn.Sequential(nn.Linear(width, 2 * c.channels), nn.ReLU(), nn.Dropout(c.dropout))
+            width = 2 * c.channels
+        else:
+            self.fuse = nn.Sequential(nn.Dropout(c.dropout))
+        self.classifier = nn.Linear(width, c.n_classes)
+        self.embedding_head = nn.Linear(width, c.emb_dim)
 
     def forward(self, batch: FeatureBatch) -> ModelOutput:
         present = batch.present_matrix()  # (B, M)
         pooled = []
         for i, m in enumerate(MODALITIES):
             valid = ~batch.padding[m]  # (B, T)
-            h = self.encoders[m](batch.x[m], valid)  # (B, T, ch)
+            h = self.step_norm[m](self.encoders[m](batch.x[m], valid))  # (B, T, ch)
             parts = [masked_mean(h, valid)] + ([masked_max(h, valid)] if self.config.max_pool else [])  # (B, ch) each
             pooled.append(torch.cat(parts, dim=1) * present[:, i, None])  # (B, 2 ch) or (B, ch)
         h = self.fuse(torch.cat(pooled + [present.float()], dim=1))  # (B, 2 ch)

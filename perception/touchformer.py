@@ -95,6 +95,10 @@ class TouchFormerConfig:
             Z + W2 dropout(ReLU(W1 Z)) of width 4 d (8 d with ``max_pool``), so the heads can combine one
             sensor's pooled features with another's non-linearly, as MTCNN's MLP head does. Off by default
             (a linear head on Z; the paper names none).
+        final_norm: the LayerNorm that ends the intra-modal Transformer of step 4 (MulT's and nanoGPT's; the
+            paper names none). It rescales every step's d features to zero mean and unit variance, so how
+            strong a step's features are relative to another's no longer reaches the pooling; False leaves
+            them as the blocks made them, as MTCNN's encoders do. On (the default).
     """
 
     in_dims: tuple[int, ...]
@@ -118,6 +122,7 @@ class TouchFormerConfig:
     max_pool: bool = False
     gate_pool: str = "input"
     head_mlp: bool = False
+    final_norm: bool = True
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -374,13 +379,15 @@ class SelfAttentionBlock(nn.Module):
 
 
 class IntraModalTransformer(nn.Module):
-    """n_layers self-attention blocks within one modality, then a final LayerNorm."""
+    """n_layers self-attention blocks within one modality, then a final LayerNorm (none with
+    ``final_norm=False``)."""
 
-    def __init__(self, d_model: int, n_heads: int, n_layers: int, dropout: float, attn_dropout: float = 0.0) -> None:
+    def __init__(self, d_model: int, n_heads: int, n_layers: int, dropout: float, attn_dropout: float = 0.0,
+                 final_norm: bool = True) -> None:
         super().__init__()
         self.blocks = nn.ModuleList([SelfAttentionBlock(d_model, n_heads, dropout, attn_dropout)
                                      for _ in range(n_layers)])
-        self.ln_f = nn.LayerNorm(d_model)
+        self.ln_f = nn.LayerNorm(d_model) if final_norm else nn.Identity()
 
     def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         for block in self.blocks:
@@ -407,7 +414,7 @@ class TouchFormer(nn.Module):
         self.cross = nn.ModuleDict({f"{tgt}_from_{src}": CrossModalAttention(c.d_model, c.n_heads, c.attn_dropout)
                                     for tgt in MODALITIES for src in MODALITIES if src != tgt})
         self.intra = nn.ModuleDict({m: IntraModalTransformer(c.d_model, c.n_heads, c.n_layers, c.dropout,
-                                                             c.attn_dropout)
+                                                             c.attn_dropout, c.final_norm)
                                     for m in MODALITIES})
         self.head_drop = nn.Dropout(c.dropout)
         width = N_MOD * c.d_model * (2 if c.max_pool else 1)

@@ -85,6 +85,41 @@ def test_mtcnn_mean_pooling_option_drops_the_maximum():
     assert default.fuse[0].in_features == 2 * 4 * config.channels + 4  # mean and maximum by default
 
 
+def test_mtcnn_linear_head_option_puts_the_heads_on_the_fused_vector():
+    torch.manual_seed(0)
+    config, model = build_model("mtcnn", IN_DIMS, 3, mlp_head=False, **TINY["mtcnn"])
+    model.eval()
+    assert not any(isinstance(mod, torch.nn.Linear) for mod in model.fuse)  # no hidden layer
+    assert model.classifier.in_features == 2 * 4 * config.channels + 4  # pooled sensors and presence
+    batch = make_batch(seed=23, p_missing=0.3)
+    with torch.no_grad():
+        out, padded = model(batch), model(_pad(batch, 4))
+    for a, b in zip(out, padded):  # padding invariance
+        assert torch.allclose(a, b, atol=1e-5)
+    _, default = build_model("mtcnn", IN_DIMS, 3, **TINY["mtcnn"])
+    assert default.classifier.in_features == 2 * config.channels  # the MLP head's hidden width by default
+
+
+def test_mtcnn_step_norm_option_normalises_each_step_before_pooling():
+    torch.manual_seed(0)
+    config, model = build_model("mtcnn", IN_DIMS, 3, step_norm=True, **TINY["mtcnn"])
+    model.eval()
+    batch = make_batch(seed=22, p_missing=0.3)
+    seen = []
+    hook = model.step_norm["sound"].register_forward_hook(lambda mod, inp, out: seen.append(out))
+    with torch.no_grad():
+        out, padded = model(batch), model(_pad(batch, 4))
+    hook.remove()
+    steps = seen[0][~batch.padding["sound"]]  # (valid steps, ch) of the unpadded batch
+    assert len(steps) > 0
+    assert torch.allclose(steps.mean(dim=-1), torch.zeros(len(steps)), atol=1e-5)  # each step: mean 0, std 1
+    assert torch.allclose(steps.std(dim=-1, unbiased=False), torch.ones(len(steps)), atol=1e-2)
+    for a, b in zip(out, padded):  # padding invariance
+        assert torch.allclose(a, b, atol=1e-5)
+    _, default = build_model("mtcnn", IN_DIMS, 3, **TINY["mtcnn"])
+    assert not any(isinstance(mod, torch.nn.LayerNorm) for mod in default.modules())  # off by default
+
+
 def test_resample_valid_interpolates_the_valid_prefix():
     ramp = torch.arange(8, dtype=torch.float32).view(1, 8, 1)
     x = torch.cat([ramp, torch.full((1, 4, 1), 99.0)], dim=1)  # 4 padded steps of junk
