@@ -454,6 +454,23 @@ def _save_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
     atomic_write(folder / "state.json", lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
 
 
+def _model_config_json(cls: type, data: Mapping[str, Any]) -> dict[str, Any]:
+    """A model config as the resume record keeps it: every field of ``cls`` (fields missing from ``data``, which
+    was saved before they existed, at their defaults), as JSON data."""
+    return json.loads(json.dumps(config_to_dict(config_from_dict(cls, data))))
+
+
+def _checkpoint_model_config(checkpoint_dir: Path, cls: type) -> dict[str, Any]:
+    """``{"model_config": ...}`` from a run's checkpoint, for a resume record written before records kept the
+    model's config (so that a changed model default is not resumed as if it were the same run); empty when the
+    checkpoint holds none that ``cls`` reads."""
+    try:
+        data = json.loads((checkpoint_dir / "config.json").read_text(encoding="utf-8"))
+        return {"model_config": _model_config_json(cls, data["model_config"])}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
 def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device
                  ) -> dict[str, Any] | None:
     json_path, tensor_path = folder / "state.json", folder / "state.safetensors"
@@ -465,7 +482,11 @@ def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
     except Exception as exc:  # corrupt JSON, missing/corrupt safetensors
         raise TrainError(f"{folder}: unreadable resume state ({exc.__class__.__name__}: "
                          f"{(str(exc).splitlines() or [''])[0]}); delete the folder to start afresh") from None
-    model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    try:
+        model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    except RuntimeError as exc:  # missing, unexpected or reshaped weights
+        raise TrainError(f"{folder}: holds a model of another architecture ({(str(exc).splitlines() or [''])[0]}); "
+                         f"use a fresh output folder") from None
     state = {int(pid): {name: tensors[f"optim.{pid}.{name}"] for name in names}
              for pid, names in record["optimizer_state_keys"].items()}
     for group in record["optimizer_param_groups"]:
@@ -559,7 +580,8 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     steps_per_epoch = max(1, math.ceil(n / config.batch_size))
     lengths = np.array([sum(0 if f.get(m) is None else len(f[m]) for m in MODALITIES) for f in norm_train])
     identity = {"config": config.to_dict(), "class_names": list(names), "n_train": n, "n_val": len(norm_val),
-                "data_sha256": f"{strokes_fingerprint(records_train)}:{strokes_fingerprint(records_val)}"}
+                "data_sha256": f"{strokes_fingerprint(records_train)}:{strokes_fingerprint(records_val)}",
+                "model_config": _model_config_json(type(model_config), config_to_dict(model_config))}
 
     resume_dir = out_dir / RESUME_DIR
     record = _load_resume(resume_dir, model, optimizer, device)
@@ -568,8 +590,10 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             record = {**record, "config": TrainConfig.from_dict(record["config"]).to_dict()}
         except (TypeError, ValueError, KeyError):
             pass  # not a config of this version: the identity check below says so
+    if record is not None and "model_config" not in record:  # saved before runs recorded their model's config
+        record = {**record, **_checkpoint_model_config(out_dir / CHECKPOINT_DIR, type(model_config))}
     if record is not None:  # a run saved before the data fingerprint existed is checked on the rest
-        checked = {k: v for k, v in identity.items() if k in record or k != "data_sha256"}
+        checked = {k: v for k, v in identity.items() if k in record or k not in ("data_sha256", "model_config")}
         if {k: record.get(k) for k in checked} != checked:
             raise TrainError(f"{resume_dir}: holds a run with another config, class list or data; "
                              f"use a fresh output folder")

@@ -238,6 +238,37 @@ def test_resume_state_from_before_a_config_field_existed_is_resumed(toy, tmp_pat
     assert again.resumed_from_epoch == 2 and again.best_epoch == full.best_epoch
 
 
+def test_run_folder_is_not_reused_after_a_model_default_changed(toy, tmp_path, monkeypatch):
+    config = _config(epochs=1)
+    _fit(toy, config, tmp_path / "run")
+    state = tmp_path / "run" / "resume" / "state.json"
+    record = json.loads(state.read_text())
+    assert record["model_config"]["final_norm"] is True and record["model_config"]["d_model"] == 16
+    # a default that keeps the weights' shapes, changed since the run was saved
+    record["model_config"]["gate_temperature"] = 0.5
+    state.write_text(json.dumps(record))
+    with pytest.raises(TrainError, match="another config, class list or data"):
+        _fit(toy, config, tmp_path / "run")
+    # a record from before records kept the model config is checked against the run's checkpoint
+    del record["model_config"]
+    state.write_text(json.dumps(record))
+    again = _fit(toy, config, tmp_path / "run")
+    assert again.resumed_from_epoch == 1
+    ckpt_json = tmp_path / "run" / "checkpoint" / "config.json"
+    saved = json.loads(ckpt_json.read_text())
+    saved["model_config"]["gate_temperature"] = 0.5
+    ckpt_json.write_text(json.dumps(saved))
+    with pytest.raises(TrainError, match="another config, class list or data"):
+        _fit(toy, config, tmp_path / "run")
+    # a default that changes the weights (no closing LayerNorm) is named as another architecture
+    import perception.train as train_module
+    real_build = train_module.build_model
+    monkeypatch.setattr(train_module, "build_model",
+                        lambda name, in_dims, n, **kw: real_build(name, in_dims, n, **{**kw, "final_norm": False}))
+    with pytest.raises(TrainError, match="another architecture"):
+        _fit(toy, config, tmp_path / "run")
+
+
 def test_run_folder_is_not_reused_for_other_strokes_of_the_same_count(toy, tmp_path):
     config = _config(epochs=1)
     _fit(toy, config, tmp_path / "run")
