@@ -275,7 +275,8 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     """Train (or reuse the finished run in) the run folder of one experiment cell; validation is carved from
     ``train_idx``. Returns the training result, its config and the validation indices. ``corruption_std``
     reaches the training config only where ``corruption`` > 0 (a run without noise is the same run whatever
-    the intensity)."""
+    the intensity). A folder holding a run of another config or model (a setting or a model default changed
+    since) is kept as ``<name>.stale-<n>`` and the cell trained afresh."""
     tr, val = validation_split(records, train_idx, task, seed, ctx.config.train.val_fraction)
     std = _noise_std(corruption, corruption_std)
     noise = {"corruption_ratio": corruption, **({} if std is None else {"corruption_std": std})}
@@ -283,7 +284,7 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     run_dir = _run_dir(ctx, model, task, split_name, corruption, run_name, corruption_std)
     res = train([records[i] for i in tr], [records[i] for i in val], cfg, run_dir, progress=False,
                 class_names=class_names, features_train=[features[i] for i in tr],
-                features_val=[features[i] for i in val], provenance=ctx.provenance)
+                features_val=[features[i] for i in val], provenance=ctx.provenance, replace_stale=True)
     return res, cfg, val
 
 

@@ -23,6 +23,7 @@ import hashlib
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,6 +85,11 @@ DEVIATIONS: dict[str, str] = {
 
 class TrainError(RuntimeError):
     """Training cannot start or resume (bad config, mismatched resume state, unknown labels)."""
+
+
+class StaleRunError(TrainError):
+    """The run folder holds a run of another config, model, class list or data (or weights of another
+    architecture), so it cannot be resumed."""
 
 
 @dataclass(frozen=True)
@@ -471,6 +477,41 @@ def _checkpoint_model_config(checkpoint_dir: Path, cls: type) -> dict[str, Any]:
         return {}
 
 
+def _resume_record(resume_dir: Path, out_dir: Path, model: nn.Module, optimizer: torch.optim.Optimizer,
+                   device: torch.device, identity: Mapping[str, Any], model_config_cls: type) -> dict[str, Any] | None:
+    """The resume record of ``out_dir`` (its state loaded into ``model`` and ``optimizer``), or None for a
+    fresh folder.
+
+    Raises:
+        StaleRunError: the folder holds a run of another config, model, class list or data.
+    """
+    record = _load_resume(resume_dir, model, optimizer, device)
+    if record is None:
+        return None
+    if isinstance(record.get("config"), dict):
+        try:  # a run saved before a field existed has that field at its default
+            record = {**record, "config": TrainConfig.from_dict(record["config"]).to_dict()}
+        except (TypeError, ValueError, KeyError):
+            pass  # not a config of this version: the identity check below says so
+    if "model_config" not in record:  # saved before runs recorded their model's config
+        record = {**record, **_checkpoint_model_config(out_dir / CHECKPOINT_DIR, model_config_cls)}
+    # a run saved before the data fingerprint (or the model config) was recorded is checked on the rest
+    checked = {k: v for k, v in identity.items() if k in record or k not in ("data_sha256", "model_config")}
+    if {k: record.get(k) for k in checked} != checked:
+        raise StaleRunError(f"{resume_dir}: holds a run with another config, class list or data; "
+                            f"use a fresh output folder")
+    return record
+
+
+def _set_aside(out_dir: Path) -> Path:
+    """Rename a run folder that cannot be resumed to ``<name>.stale-<n>`` (the first n free) and return it."""
+    n = 1
+    while (aside := out_dir.with_name(f"{out_dir.name}.stale-{n}")).exists():
+        n += 1
+    out_dir.rename(aside)
+    return aside
+
+
 def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device
                  ) -> dict[str, Any] | None:
     json_path, tensor_path = folder / "state.json", folder / "state.safetensors"
@@ -485,8 +526,8 @@ def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
     try:
         model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
     except RuntimeError as exc:  # missing, unexpected or reshaped weights
-        raise TrainError(f"{folder}: holds a model of another architecture ({(str(exc).splitlines() or [''])[0]}); "
-                         f"use a fresh output folder") from None
+        raise StaleRunError(f"{folder}: holds a model of another architecture "
+                            f"({(str(exc).splitlines() or [''])[0]}); use a fresh output folder") from None
     state = {int(pid): {name: tensors[f"optim.{pid}.{name}"] for name in names}
              for pid, names in record["optimizer_state_keys"].items()}
     for group in record["optimizer_param_groups"]:
@@ -509,7 +550,8 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
           features_train: Sequence[StrokeFeatures] | None = None,
           features_val: Sequence[StrokeFeatures] | None = None,
           provenance: Mapping[str, Any] | None = None,
-          on_epoch_end: Callable[[Mapping[str, float]], None] | None = None) -> TrainResult:
+          on_epoch_end: Callable[[Mapping[str, float]], None] | None = None,
+          replace_stale: bool = False) -> TrainResult:
     """Train ``config.model`` on ``records_train``, choosing the best epoch on ``records_val``.
 
     Args:
@@ -525,12 +567,17 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         features_train, features_val: precomputed raw features of the records (see :func:`featurize_records`).
         provenance: extra JSON data stored in the checkpoint's meta (command, data manifest hash, ...).
         on_epoch_end: called with each epoch's history row after its state is saved.
+        replace_stale: a folder holding a run of another config, model or data is renamed to
+            ``<name>.stale-<n>`` (nothing is deleted) and the run trained afresh, instead of raising
+            :class:`StaleRunError` (the evaluation's run cache, after a setting or a model default changed).
 
     Returns:
         The :class:`TrainResult`.
 
     Raises:
-        TrainError: unknown validation labels, resume state from another config or other strokes, CUDA missing.
+        TrainError: unknown validation labels, CUDA missing.
+        StaleRunError: (a TrainError) resume state from another config, model or other strokes, unless
+            ``replace_stale``.
     """
     out_dir = Path(out_dir)
     if config.num_threads > 0:
@@ -584,19 +631,17 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
                 "model_config": _model_config_json(type(model_config), config_to_dict(model_config))}
 
     resume_dir = out_dir / RESUME_DIR
-    record = _load_resume(resume_dir, model, optimizer, device)
-    if record is not None and isinstance(record.get("config"), dict):
-        try:  # a run saved before a field existed has that field at its default
-            record = {**record, "config": TrainConfig.from_dict(record["config"]).to_dict()}
-        except (TypeError, ValueError, KeyError):
-            pass  # not a config of this version: the identity check below says so
-    if record is not None and "model_config" not in record:  # saved before runs recorded their model's config
-        record = {**record, **_checkpoint_model_config(out_dir / CHECKPOINT_DIR, type(model_config))}
-    if record is not None:  # a run saved before the data fingerprint existed is checked on the rest
-        checked = {k: v for k, v in identity.items() if k in record or k not in ("data_sha256", "model_config")}
-        if {k: record.get(k) for k in checked} != checked:
-            raise TrainError(f"{resume_dir}: holds a run with another config, class list or data; "
-                             f"use a fresh output folder")
+    try:
+        record = _resume_record(resume_dir, out_dir, model, optimizer, device, identity, type(model_config))
+    except StaleRunError as exc:
+        if not replace_stale:
+            raise
+        aside = _set_aside(out_dir)
+        tqdm.write(f"{out_dir}: {str(exc).split(': ', 1)[-1].split(';')[0]}; kept as {aside.name}, training afresh",
+                   file=sys.stderr)
+        return train(records_train, records_val, config, out_dir, progress, class_names=class_names,
+                     features_train=features_train, features_val=features_val, provenance=provenance,
+                     on_epoch_end=on_epoch_end)
     start_epoch = 0 if record is None else int(record["epoch"])
     history: list[dict[str, float]] = [] if record is None else list(record["history"])
     best_epoch = 0 if record is None else int(record["best_epoch"])

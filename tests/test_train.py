@@ -14,9 +14,9 @@ from perception.checkpoint import load_checkpoint
 from perception.dataset import labels_of, ssmc_split, validation_split, write_dataset
 from perception.features import collate, feature_dims, featurize
 from perception.baselines import build_model
-from perception.train import (TEST_CORRUPTION_SEED_OFFSET, TrainConfig, TrainError, corrupt_batch, cosine_lr,
-                              crop_in_time, drop_modalities, featurize_records, length_grouped_batches, predict,
-                              scheduled_lr, strokes_fingerprint, task_split, train, train_command)
+from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError, corrupt_batch,
+                              cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
+                              predict, scheduled_lr, strokes_fingerprint, task_split, train, train_command)
 from tests.test_dataset import make_material_strokes
 
 TINY = {
@@ -265,8 +265,14 @@ def test_run_folder_is_not_reused_after_a_model_default_changed(toy, tmp_path, m
     real_build = train_module.build_model
     monkeypatch.setattr(train_module, "build_model",
                         lambda name, in_dims, n, **kw: real_build(name, in_dims, n, **{**kw, "final_norm": False}))
-    with pytest.raises(TrainError, match="another architecture"):
+    with pytest.raises(StaleRunError, match="another architecture"):
         _fit(toy, config, tmp_path / "run")
+    # the evaluation's cache keeps such a folder aside and trains the run afresh
+    fresh = _fit(toy, config, tmp_path / "run", replace_stale=True)
+    assert fresh.resumed_from_epoch == 0 and (tmp_path / "run.stale-1" / "resume" / "state.json").is_file()
+    assert json.loads((tmp_path / "run" / "resume" / "state.json").read_text())["model_config"]["final_norm"] is False
+    again = _fit(toy, config, tmp_path / "run", replace_stale=True)  # now the same run: resumed, nothing moved
+    assert again.resumed_from_epoch == 1 and not (tmp_path / "run.stale-2").exists()
 
 
 def test_run_folder_is_not_reused_for_other_strokes_of_the_same_count(toy, tmp_path):
