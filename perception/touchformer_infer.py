@@ -62,7 +62,7 @@ class FusedTouchFormer(nn.Module):
         super().__init__()
         self.config = c = model.config
         self.reference = model  # front end (convolutions, gate) and heads are used as they are
-        self.eps = model.intra[MODALITIES[0]].ln_f.eps
+        self.eps = model.cross[f"{PAIRS[0][0]}_from_{PAIRS[0][1]}"].ln_target.eps  # every LayerNorm's
         with torch.no_grad():
             cross: list[CrossModalAttention] = [model.cross[f"{t}_from_{s}"] for t, s in PAIRS]
             self.q_w, self.q_b = _stack_folded([(m.ln_target, m.attn.q) for m in cross])  # (12, d, d)
@@ -80,8 +80,9 @@ class FusedTouchFormer(nn.Module):
                     "fc": _stack_folded([(b.ln_2, b.mlp.fc) for b in blocks]),  # (M, d, 4d)
                     "mlp_proj": _stack_linear([b.mlp.proj for b in blocks]),  # (M, 4d, d)
                 })
-            self.lnf_w = torch.stack([model.intra[m].ln_f.weight for m in MODALITIES])[:, None, :]  # (M, 1, d)
-            self.lnf_b = torch.stack([model.intra[m].ln_f.bias for m in MODALITIES])[:, None, :]  # (M, 1, d)
+            if c.final_norm:  # the intra-modal blocks' closing LayerNorm
+                self.lnf_w = torch.stack([model.intra[m].ln_f.weight for m in MODALITIES])[:, None, :]  # (M, 1, d)
+                self.lnf_b = torch.stack([model.intra[m].ln_f.bias for m in MODALITIES])[:, None, :]  # (M, 1, d)
         self.src_index = torch.tensor(PAIR_SOURCE)
         self.tgt_index = torch.tensor(PAIR_TARGET)
         self._pe: dict[int, torch.Tensor] = {}
@@ -148,7 +149,8 @@ class FusedTouchFormer(nn.Module):
             z = z + torch.baddbmm(layer["proj"][1], y.reshape(N_MOD, b * t_max, d), layer["proj"][0])
             h = F.gelu(torch.baddbmm(layer["fc"][1], F.layer_norm(z, (d,), eps=self.eps), layer["fc"][0]))
             z = z + torch.baddbmm(layer["mlp_proj"][1], h, layer["mlp_proj"][0])  # (M, B T, d)
-        z = F.layer_norm(z, (d,), eps=self.eps) * self.lnf_w + self.lnf_b  # (M, B T, d)
+        if c.final_norm:
+            z = F.layer_norm(z, (d,), eps=self.eps) * self.lnf_w + self.lnf_b  # (M, B T, d)
 
         # 5. pooling, alpha-weighted concat (eq. 12), heads
         z, w = z.reshape(N_MOD * b, t_max, d), steps_valid.reshape(N_MOD * b, t_max)  # (M B, T, d), (M B, T)
@@ -156,6 +158,8 @@ class FusedTouchFormer(nn.Module):
         if c.max_pool:
             pooled = torch.cat([pooled, masked_max(z, w)], dim=1)  # (M B, 2 d)
         pooled = (pooled.reshape(N_MOD, b, -1) * alphas.t()[:, :, None]).transpose(0, 1).reshape(b, -1)  # (B, [2] M d)
+        if ref.head_mlp is not None:
+            pooled = pooled + ref.head_mlp(pooled)  # (B, width), MulT's residual projection
         logits = ref.classifier(pooled)  # (B, K)
         embedding = F.normalize(ref.embedding_head(pooled), dim=-1)  # (B, E)
         return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)
