@@ -526,8 +526,9 @@ def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
     try:
         model.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
     except RuntimeError as exc:  # missing, unexpected or reshaped weights
+        detail = " ".join(line.strip() for line in str(exc).splitlines()[1:] if line.strip())
         raise StaleRunError(f"{folder}: holds a model of another architecture "
-                            f"({(str(exc).splitlines() or [''])[0]}); use a fresh output folder") from None
+                            f"({detail[:160] or exc}); use a fresh output folder") from None
     state = {int(pid): {name: tensors[f"optim.{pid}.{name}"] for name in names}
              for pid, names in record["optimizer_state_keys"].items()}
     for group in record["optimizer_param_groups"]:
