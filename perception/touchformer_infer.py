@@ -62,7 +62,7 @@ class FusedTouchFormer(nn.Module):
         super().__init__()
         self.config = c = model.config
         self.reference = model  # front end (convolutions, gate) and heads are used as they are
-        self.eps = model.cross[f"{PAIRS[0][0]}_from_{PAIRS[0][1]}"].ln_target.eps  # every LayerNorm's
+        self.eps = model.cross[f"{PAIRS[0][0]}_from_{PAIRS[0][1]}"].ln_target.eps  # the eps all its LayerNorms share
         with torch.no_grad():
             cross: list[CrossModalAttention] = [model.cross[f"{t}_from_{s}"] for t, s in PAIRS]
             self.q_w, self.q_b = _stack_folded([(m.ln_target, m.attn.q) for m in cross])  # (12, d, d)
