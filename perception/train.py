@@ -477,14 +477,15 @@ def _checkpoint_model_config(checkpoint_dir: Path, cls: type) -> dict[str, Any]:
         return {}
 
 
-def _resume_record(resume_dir: Path, out_dir: Path, model: nn.Module, optimizer: torch.optim.Optimizer,
-                   device: torch.device, identity: Mapping[str, Any], model_config_cls: type) -> dict[str, Any] | None:
-    """The resume record of ``out_dir`` (its state loaded into ``model`` and ``optimizer``), or None for a
-    fresh folder.
+def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device,
+                   identity: Mapping[str, Any], model_config_cls: type) -> dict[str, Any] | None:
+    """The resume record of the run folder ``out_dir`` (its state loaded into ``model`` and ``optimizer``), or
+    None for a fresh folder.
 
     Raises:
         StaleRunError: the folder holds a run of another config, model, class list or data.
     """
+    resume_dir = out_dir / RESUME_DIR
     record = _load_resume(resume_dir, model, optimizer, device)
     if record is None:
         return None
@@ -633,7 +634,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
 
     resume_dir = out_dir / RESUME_DIR
     try:
-        record = _resume_record(resume_dir, out_dir, model, optimizer, device, identity, type(model_config))
+        record = _resume_record(out_dir, model, optimizer, device, identity, type(model_config))
     except StaleRunError as exc:
         if not replace_stale:
             raise

@@ -32,6 +32,14 @@ def _pad(batch: FeatureBatch, extra: int) -> FeatureBatch:
     return FeatureBatch(x=x, padding=padding, present=batch.present, labels=batch.labels)
 
 
+def _assert_padding_invariant(model, batch: FeatureBatch) -> None:
+    """The model's outputs do not change when every modality gets 4 more padded steps."""
+    with torch.no_grad():
+        out, padded = model(batch), model(_pad(batch, 4))
+    for a, b in zip(out, padded):
+        assert torch.allclose(a, b, atol=1e-5)
+
+
 def test_registry_lists_every_model_explicitly():
     assert set(MODEL_REGISTRY) == {"touchformer", "touchformer_fusion", "touchformer_mag", "touchformer_soft",
                                    "lstm", "mtcnn"}
@@ -76,11 +84,7 @@ def test_mtcnn_mean_pooling_option_drops_the_maximum():
     config, model = build_model("mtcnn", IN_DIMS, 3, max_pool=False, **TINY["mtcnn"])
     model.eval()
     assert model.fuse[0].in_features == 4 * config.channels + 4  # the mean of each sensor, and presence
-    batch = make_batch(seed=21, p_missing=0.3)
-    with torch.no_grad():
-        out, padded = model(batch), model(_pad(batch, 4))
-    for a, b in zip(out, padded):  # padding invariance
-        assert torch.allclose(a, b, atol=1e-5)
+    _assert_padding_invariant(model, make_batch(seed=21, p_missing=0.3))
     _, default = build_model("mtcnn", IN_DIMS, 3, **TINY["mtcnn"])
     assert default.fuse[0].in_features == 2 * 4 * config.channels + 4  # mean and maximum by default
 
@@ -91,11 +95,7 @@ def test_mtcnn_linear_head_option_puts_the_heads_on_the_fused_vector():
     model.eval()
     assert not any(isinstance(mod, torch.nn.Linear) for mod in model.fuse)  # no hidden layer
     assert model.classifier.in_features == 2 * 4 * config.channels + 4  # pooled sensors and presence
-    batch = make_batch(seed=23, p_missing=0.3)
-    with torch.no_grad():
-        out, padded = model(batch), model(_pad(batch, 4))
-    for a, b in zip(out, padded):  # padding invariance
-        assert torch.allclose(a, b, atol=1e-5)
+    _assert_padding_invariant(model, make_batch(seed=23, p_missing=0.3))
     _, default = build_model("mtcnn", IN_DIMS, 3, **TINY["mtcnn"])
     assert default.classifier.in_features == 2 * config.channels  # the MLP head's hidden width by default
 
@@ -107,15 +107,12 @@ def test_mtcnn_step_norm_option_normalises_each_step_before_pooling():
     batch = make_batch(seed=22, p_missing=0.3)
     seen = []
     hook = model.step_norm["sound"].register_forward_hook(lambda mod, inp, out: seen.append(out))
-    with torch.no_grad():
-        out, padded = model(batch), model(_pad(batch, 4))
+    _assert_padding_invariant(model, batch)  # the hook sees the unpadded batch first
     hook.remove()
     steps = seen[0][~batch.padding["sound"]]  # (valid steps, ch) of the unpadded batch
     assert len(steps) > 0
     assert torch.allclose(steps.mean(dim=-1), torch.zeros(len(steps)), atol=1e-5)  # each step: mean 0, std 1
     assert torch.allclose(steps.std(dim=-1, unbiased=False), torch.ones(len(steps)), atol=1e-2)
-    for a, b in zip(out, padded):  # padding invariance
-        assert torch.allclose(a, b, atol=1e-5)
     _, default = build_model("mtcnn", IN_DIMS, 3, **TINY["mtcnn"])
     assert not any(isinstance(mod, torch.nn.LayerNorm) for mod in default.modules())  # off by default
 
