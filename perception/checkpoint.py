@@ -73,13 +73,16 @@ def config_to_dict(config: Any) -> dict[str, Any]:
 
 
 def config_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
-    """Rebuild a (nested) frozen config dataclass from JSON data; lists become tuples.
+    """Rebuild a (nested) frozen config dataclass from JSON data; lists become tuples. A field missing from
+    ``data`` takes its default, or, where the class lists it in a ``SAVED_BEFORE`` class variable, the value
+    that configs saved before the field existed had.
 
     Raises:
         ValueError: missing or unknown fields, or values the dataclass rejects.
     """
     if not isinstance(data, Mapping):
         raise ValueError(f"{cls.__name__} must be a JSON object, got {type(data).__name__}")
+    data = {**getattr(cls, "SAVED_BEFORE", {}), **data}
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)

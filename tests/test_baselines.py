@@ -53,6 +53,7 @@ def test_registry_lists_every_model_explicitly():
     assert soft.use_mag and soft.cer_lambda == full.cer_lambda and soft.gate_th == 0.0
     assert mag.use_mag and mag.cer_lambda == 0
     assert not fusion.use_mag and fusion.cer_lambda == 0
+    assert not full.final_norm and not mag.final_norm and not fusion.final_norm and soft.final_norm
     assert isinstance(full, TouchFormerConfig)
     with pytest.raises(KeyError, match="known"):
         build_model("transformer", IN_DIMS, 3)

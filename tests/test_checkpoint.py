@@ -64,6 +64,23 @@ def test_round_trip_gives_identical_outputs(tmp_path, name):
             assert torch.equal(a, b)
 
 
+def test_config_saved_before_final_norm_existed_loads_with_the_closing_layernorm(tmp_path):
+    model, _ = _save(tmp_path, "touchformer")
+    assert not model.config.final_norm  # the default since session 22
+    with_norm = model.config.__class__(**{**model.config.__dict__, "final_norm": True})
+    torch.manual_seed(0)
+    old_model = type(model)(with_norm)
+    safetensors.torch.save_file(old_model.state_dict(), str(tmp_path / WEIGHTS_FILE))
+    _edit_config(tmp_path, lambda r: r["model_config"].pop("final_norm"))  # as written before the field existed
+    loaded = load_checkpoint(tmp_path)
+    assert loaded.model_config.final_norm and isinstance(loaded.model.intra["sound"].ln_f, torch.nn.LayerNorm)
+    # the robot's committed checkpoint was trained before the field existed and still loads, with it
+    robot = load_checkpoint(Path(__file__).resolve().parents[1] / "robotdemo" / "checkpoints" / "touchformer_fire")
+    saved = json.loads((Path(__file__).resolve().parents[1] / "robotdemo" / "checkpoints" / "touchformer_fire" /
+                        CONFIG_FILE).read_text())["model_config"]
+    assert robot.model_config.final_norm == saved.get("final_norm", True)
+
+
 def test_missing_files(tmp_path):
     _expect_error(tmp_path / "nowhere", CONFIG_FILE, "not found")
     _save(tmp_path)

@@ -70,13 +70,13 @@ def train_and_score(model: torch.nn.Module, train: list[FeatureBatch], test: Fea
 
 
 @pytest.fixture(scope="module", params=[{}, {"stem_dilations": (1, 2)}, {"stem_dilations": (1, 2), "max_pool": True},
-                                        {"gate_pool": "hidden"}, {"head_mlp": True}, {"final_norm": False}],
+                                        {"gate_pool": "hidden"}, {"head_mlp": True}, {"final_norm": True}],
                 ids=["paper", "dilated_stem", "dilated_stem_max_pool", "hidden_gate_pool", "head_mlp",
-                     "no_final_norm"])
+                     "final_norm"])
 def model(request) -> TouchFormer:
     """The paper's model (one Conv1D per modality, mean pooling), and the options of residual dilated layers
     after that Conv1D, of mean+max pooling, of the gate pooled after its hidden layer, of MulT's residual
-    MLP before the heads and of no LayerNorm after the intra-modal blocks."""
+    MLP before the heads and of a LayerNorm closing the intra-modal blocks."""
     torch.manual_seed(0)
     return TouchFormer(tiny_config(**request.param)).eval()
 

@@ -243,7 +243,7 @@ def test_run_folder_is_not_reused_after_a_model_default_changed(toy, tmp_path, m
     _fit(toy, config, tmp_path / "run")
     state = tmp_path / "run" / "resume" / "state.json"
     record = json.loads(state.read_text())
-    assert record["model_config"]["final_norm"] is True and record["model_config"]["d_model"] == 16
+    assert record["model_config"]["final_norm"] is False and record["model_config"]["d_model"] == 16
     # a default that keeps the weights' shapes, changed since the run was saved
     record["model_config"]["gate_temperature"] = 0.5
     state.write_text(json.dumps(record))
@@ -260,17 +260,17 @@ def test_run_folder_is_not_reused_after_a_model_default_changed(toy, tmp_path, m
     ckpt_json.write_text(json.dumps(saved))
     with pytest.raises(TrainError, match="another config, class list or data"):
         _fit(toy, config, tmp_path / "run")
-    # a default that changes the weights (no closing LayerNorm) is named as another architecture
+    # a default that changes the weights (a closing LayerNorm) is named as another architecture
     import perception.train as train_module
     real_build = train_module.build_model
     monkeypatch.setattr(train_module, "build_model",
-                        lambda name, in_dims, n, **kw: real_build(name, in_dims, n, **{**kw, "final_norm": False}))
+                        lambda name, in_dims, n, **kw: real_build(name, in_dims, n, **{**kw, "final_norm": True}))
     with pytest.raises(StaleRunError, match=r"another architecture \((Missing|Unexpected) key"):
         _fit(toy, config, tmp_path / "run")
     # the evaluation's cache keeps such a folder aside and trains the run afresh
     fresh = _fit(toy, config, tmp_path / "run", replace_stale=True)
     assert fresh.resumed_from_epoch == 0 and (tmp_path / "run.stale-1" / "resume" / "state.json").is_file()
-    assert json.loads((tmp_path / "run" / "resume" / "state.json").read_text())["model_config"]["final_norm"] is False
+    assert json.loads((tmp_path / "run" / "resume" / "state.json").read_text())["model_config"]["final_norm"] is True
     again = _fit(toy, config, tmp_path / "run", replace_stale=True)  # now the same run: resumed, nothing moved
     assert again.resumed_from_epoch == 1 and not (tmp_path / "run.stale-2").exists()
 
