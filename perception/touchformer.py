@@ -168,7 +168,7 @@ class TouchFormerSoftGateConfig(TouchFormerConfig):
     test strokes alike, and this variant scored 2-4 points higher on SSMC and USMC validation and 8 on
     fine-grained than TouchFormer at temperature 1 (the report before session 18's, README). Its softmax keeps
     eq. 3's temperature 1, the setting it was chosen at (``gate_temperature`` 0.2 was measured only on the
-    thresholded TouchFormer). It keeps the closing LayerNorm for the same reason: without it, it lost 0.9
+    thresholded TouchFormer). It keeps the closing LayerNorm for the same reason: without it, it lost 1.0
     points on USMC validation and 2.9 on fine-grained (``final_norm``)."""
 
     gate_th: float = 0.0
