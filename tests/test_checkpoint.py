@@ -75,9 +75,9 @@ def test_config_saved_before_final_norm_existed_loads_with_the_closing_layernorm
     loaded = load_checkpoint(tmp_path)
     assert loaded.model_config.final_norm and isinstance(loaded.model.intra["sound"].ln_f, torch.nn.LayerNorm)
     # the robot's committed checkpoint was trained before the field existed and still loads, with it
-    robot = load_checkpoint(Path(__file__).resolve().parents[1] / "robotdemo" / "checkpoints" / "touchformer_fire")
-    saved = json.loads((Path(__file__).resolve().parents[1] / "robotdemo" / "checkpoints" / "touchformer_fire" /
-                        CONFIG_FILE).read_text())["model_config"]
+    robot_dir = Path(__file__).resolve().parents[1] / "robotdemo" / "checkpoints" / "touchformer_fire"
+    robot = load_checkpoint(robot_dir)
+    saved = json.loads((robot_dir / CONFIG_FILE).read_text())["model_config"]
     assert robot.model_config.final_norm == saved.get("final_norm", True)
 
 
