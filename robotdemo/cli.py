@@ -316,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--no-robustness", action="store_true", help="leave the robustness curve out")
     evaluate.add_argument("--corruption-stds", type=float, nargs="+", default=None, metavar="STD",
                           help="the robustness curve's noise intensities, stds in units of the per-channel "
-                               "training feature std (default 1 3)")
+                               "training feature std (default 1 3 5)")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(func=_cmd_evaluate)
 
