@@ -51,6 +51,10 @@ RESULT_FILE = "train_result.json"
 # test-time corruption noise is drawn from seed + this offset (evaluate's robustness runs and train_command),
 # so that it differs from the training run's own draws
 TEST_CORRUPTION_SEED_OFFSET = 12345
+# TrainConfig fields that say where a run trains, not what it trains: a run folder resumes whatever they are
+# (a run begun with "auto" on a GPU machine goes on with "cpu" on a laptop, and the evaluation's workers run
+# one torch thread each)
+PLACEMENT_FIELDS = ("device", "num_threads")
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -500,7 +504,7 @@ def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optim
         return None
     if isinstance(record.get("config"), dict):
         try:  # a run saved before a field existed has that field at its default
-            record = {**record, "config": TrainConfig.from_dict(record["config"]).to_dict()}
+            record = {**record, "config": _trained_config(TrainConfig.from_dict(record["config"]))}
         except (TypeError, ValueError, KeyError):
             pass  # not a config of this version: the identity check below says so
     if "model_config" not in record:  # saved before runs recorded their model's config
@@ -511,6 +515,11 @@ def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optim
         raise StaleRunError(f"{resume_dir}: holds a run with another config, class list or data; "
                             f"use a fresh output folder")
     return record
+
+
+def _trained_config(config: TrainConfig) -> dict[str, Any]:
+    """``config`` as plain JSON without its :data:`PLACEMENT_FIELDS`: what a run folder's identity holds."""
+    return {k: v for k, v in config.to_dict().items() if k not in PLACEMENT_FIELDS}
 
 
 def _set_aside(out_dir: Path) -> Path:
@@ -637,7 +646,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         raise TrainError("no training strokes")
     steps_per_epoch = max(1, math.ceil(n / config.batch_size))
     lengths = np.array([sum(0 if f.get(m) is None else len(f[m]) for m in MODALITIES) for f in norm_train])
-    identity = {"config": config.to_dict(), "class_names": list(names), "n_train": n, "n_val": len(norm_val),
+    identity = {"config": _trained_config(config), "class_names": list(names), "n_train": n, "n_val": len(norm_val),
                 "data_sha256": f"{strokes_fingerprint(records_train)}:{strokes_fingerprint(records_val)}",
                 "model_config": _model_config_json(type(model_config), config_to_dict(model_config))}
 

@@ -98,6 +98,16 @@ def test_resume_gives_identical_weights(toy, tmp_path):
         _fit(toy, dataclasses.replace(config, lr=1e-2), tmp_path / "full")
 
 
+def test_run_folder_resumes_whatever_its_device_and_thread_count(toy, tmp_path):
+    config = _config(epochs=2)
+    first = _fit(toy, config, tmp_path / "run")
+    again = _fit(toy, dataclasses.replace(config, device="auto", num_threads=2), tmp_path / "run")
+    assert again.resumed_from_epoch == 2 and again.history == first.history  # finished: not retrained
+    assert not list(tmp_path.glob("run.stale-*"))
+    with pytest.raises(TrainError, match="another config"):  # what is trained still counts
+        _fit(toy, dataclasses.replace(config, device="auto", seed=1), tmp_path / "run")
+
+
 def test_length_grouped_batches_cover_every_stroke_once_with_less_padding():
     rng = np.random.default_rng(0)
     lengths = rng.lognormal(4.0, 0.5, size=700).astype(int) + 20
