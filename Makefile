@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test install clean-venv
+.PHONY: demo test test-gpu install clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# the CUDA path, on a machine with a GPU (pip's torch here is the CPU build: install a CUDA build of torch
+# into .venv first, or run `python -m pytest -m gpu` with a Python whose torch sees the GPU)
+test-gpu: $(STAMP)
+	$(BIN)/python -m pytest -q -m gpu
 
 clean-venv:
 	rm -rf $(VENV)

@@ -457,8 +457,11 @@ def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
     folder, at its first place in ``jobs``). The experiments then run as without workers and find every run
     finished in its folder (:func:`perception.train.train` reuses it), so the results are those of a
     sequential evaluation. One torch thread per process, so ``workers`` processes share as many cores without
-    oversubscribing them."""
+    oversubscribing them. On a GPU the workers share it; if this process has used CUDA already, a forked worker
+    could not, so the runs are trained here one after another instead."""
     import multiprocessing as mp
+
+    import torch
 
     global _POOL_CONTEXT
     unique: dict[Path, _TrainJob] = {}
@@ -467,9 +470,19 @@ def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
             unique.setdefault(job.run_dir(ctx), job)
     if not unique:
         return
+    in_process = resolve_device(ctx.config.train.device).type == "cuda" and torch.cuda.is_initialized()
+    if in_process:  # a forked worker could not use the GPU
+        tqdm.write(f"CUDA is already in use in this process, so forked workers could not use it: training the "
+                   f"{len(unique)} runs here, one after another", file=sys.stderr)
     _POOL_CONTEXT = ctx
-    bar = tqdm(total=len(unique), desc=f"train ({workers} workers)", disable=not ctx.progress)
+    bar = tqdm(total=len(unique), desc="train" if in_process else f"train ({workers} workers)",
+               disable=not ctx.progress)
     try:
+        if in_process:
+            for job in unique.values():
+                bar.set_postfix_str(_pretrain_job(job))
+                bar.update()
+            return
         with mp.get_context("fork").Pool(workers, initializer=_pool_init) as pool:
             for name in pool.imap_unordered(_pretrain_job, list(unique.values())):
                 bar.set_postfix_str(name)

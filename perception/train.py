@@ -265,11 +265,22 @@ class TrainResult:
 # features, augmentation, prediction
 
 
+def cuda_available() -> bool:
+    """Whether this machine has a CUDA GPU torch can use, asked without initialising CUDA in this process.
+
+    :func:`torch.cuda.device_count` counts the GPUs through NVML; :func:`torch.cuda.is_available` would ask the
+    CUDA runtime, after which a forked process can no longer use CUDA ("Cannot re-initialize CUDA in forked
+    subprocess"), and the evaluation forks its training workers (``perception.evaluate._pretrain``) after
+    resolving the device.
+    """
+    return torch.cuda.device_count() > 0
+
+
 def resolve_device(device: str) -> torch.device:
-    """"auto" -> CUDA when available, else CPU."""
+    """"auto" -> CUDA when available, else CPU (:func:`cuda_available`)."""
     if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cuda" and not torch.cuda.is_available():
+        return torch.device("cuda" if cuda_available() else "cpu")
+    if device == "cuda" and not cuda_available():
         raise TrainError("device 'cuda' asked for but CUDA is not available")
     return torch.device(device)
 
