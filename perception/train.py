@@ -52,8 +52,7 @@ RESULT_FILE = "train_result.json"
 # so that it differs from the training run's own draws
 TEST_CORRUPTION_SEED_OFFSET = 12345
 # TrainConfig fields that say where a run trains, not what it trains: a run folder resumes whatever they are
-# (a run begun with "auto" on a GPU machine goes on with "cpu" on a laptop, and the evaluation's workers run
-# one torch thread each)
+# (a run begun with "auto" on a GPU machine goes on with "cpu" elsewhere, or with another thread count)
 PLACEMENT_FIELDS = ("device", "num_threads")
 
 DEVIATIONS: dict[str, str] = {
@@ -268,10 +267,10 @@ class TrainResult:
 def cuda_available() -> bool:
     """Whether this machine has a CUDA GPU torch can use, asked without initialising CUDA in this process.
 
-    :func:`torch.cuda.device_count` counts the GPUs through NVML; :func:`torch.cuda.is_available` would ask the
-    CUDA runtime, after which a forked process can no longer use CUDA ("Cannot re-initialize CUDA in forked
-    subprocess"), and the evaluation forks its training workers (``perception.evaluate._pretrain``) after
-    resolving the device.
+    :func:`torch.cuda.device_count` counts the GPUs through NVML where the driver has it (it falls back to the
+    CUDA runtime otherwise); :func:`torch.cuda.is_available` would always ask the CUDA runtime, after which a
+    forked process can no longer use CUDA ("Cannot re-initialize CUDA in forked subprocess"), and the
+    evaluation forks its training workers (``perception.evaluate._pretrain``) after resolving the device.
     """
     return torch.cuda.device_count() > 0
 
