@@ -56,7 +56,8 @@ def test_auto_trains_on_the_gpu_and_the_checkpoint_predicts_the_same_on_the_cpu(
 def test_forward_with_padding_and_a_missing_sensor_matches_the_cpu(toy):  # noqa: F811
     torch.manual_seed(0)
     dims = feature_dims(TrainConfig().feature_config)
-    _, model = build_model("touchformer", tuple(dims.values()), 3, d_model=16, n_heads=2, n_layers=1, gate_hidden=8, emb_dim=16)
+    _, model = build_model("touchformer", tuple(dims.values()), 3, d_model=16, n_heads=2, n_layers=1, gate_hidden=8,
+                           emb_dim=16)
     model.eval()
     feats = [dict(toy["feats"][i]) for i in range(6)]
     feats[1]["sound"] = None  # an absent microphone
