@@ -30,6 +30,7 @@ t-SNE of test embeddings with and without CER).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -478,13 +479,13 @@ def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
     bar = tqdm(total=len(unique), desc="train" if in_process else f"train ({workers} workers)",
                disable=not ctx.progress)
     try:
-        if in_process:
-            for job in unique.values():
-                bar.set_postfix_str(_pretrain_job(job))
-                bar.update()
-            return
-        with mp.get_context("fork").Pool(workers, initializer=_pool_init) as pool:
-            for name in pool.imap_unordered(_pretrain_job, list(unique.values())):
+        with contextlib.ExitStack() as stack:
+            if in_process:
+                names: Iterable[str] = map(_pretrain_job, unique.values())
+            else:
+                pool = stack.enter_context(mp.get_context("fork").Pool(workers, initializer=_pool_init))
+                names = pool.imap_unordered(_pretrain_job, list(unique.values()))
+            for name in names:
                 bar.set_postfix_str(name)
                 bar.update()
     finally:
