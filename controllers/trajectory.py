@@ -127,7 +127,8 @@ class JointTrajectory:
         segments: the Ruckig trajectories, one per pair of consecutive waypoints.
         start_times_s: start time of each segment, s (the first is 0).
         waypoints_rad: (M, dof) the configurations passed through, first = start, last = goal.
-        waypoint_velocities_radps: (M, dof) velocity at each waypoint (zero at both ends).
+        waypoint_velocities_radps: (M, dof) velocity at each waypoint (zero at the last; at the first too unless
+            the move started moving).
         duration_s: total duration, s.
     """
 
@@ -165,12 +166,12 @@ class JointTrajectory:
 
 
 def _ruckig_segment(limits: JointMotionLimits, q0: np.ndarray, v0: np.ndarray, q1: np.ndarray,
-                    v1: np.ndarray) -> tuple[ruckig.Result, ruckig.Trajectory]:
+                    v1: np.ndarray, a0: np.ndarray | None = None) -> tuple[ruckig.Result, ruckig.Trajectory]:
     otg = ruckig.Ruckig(limits.dof)
     inp = ruckig.InputParameter(limits.dof)
     inp.current_position = q0.tolist()
     inp.current_velocity = v0.tolist()
-    inp.current_acceleration = [0.0] * limits.dof
+    inp.current_acceleration = [0.0] * limits.dof if a0 is None else a0.tolist()
     inp.target_position = q1.tolist()
     inp.target_velocity = v1.tolist()
     inp.target_acceleration = [0.0] * limits.dof
@@ -229,13 +230,18 @@ def _pass_through_velocities(waypoints: np.ndarray, limits: JointMotionLimits) -
 
 
 def plan_joint_path(waypoints_rad: Sequence[Sequence[float]] | np.ndarray, limits: JointMotionLimits,
-                    pass_through: bool = True) -> JointTrajectory:
-    """Jerk-limited, time-optimal move from rest through every waypoint to rest at the last one.
+                    pass_through: bool = True, start_velocity_radps: Sequence[float] | None = None,
+                    start_acceleration_radps2: Sequence[float] | None = None) -> JointTrajectory:
+    """Jerk-limited, time-optimal move from rest (or from a moving start) through every waypoint to rest at the
+    last one.
 
     Args:
-        waypoints_rad: (M >= 2, dof) configurations; the first is the start state (at rest).
+        waypoints_rad: (M >= 2, dof) configurations; the first is the start state.
         limits: the joints' limits; every waypoint must lie within the position limits.
         pass_through: keep moving through interior waypoints where a joint does not turn (else stop at each).
+        start_velocity_radps, start_acceleration_radps2: (dof,) the start state's velocity and acceleration
+            (default: at rest), e.g. a move taken over from one that was cut short: the new one brakes and
+            turns within the jerk and acceleration limits instead of starting with a step.
 
     Returns:
         The :class:`JointTrajectory`; its position stays within the limits (a segment whose braking would leave
@@ -252,12 +258,21 @@ def plan_joint_path(waypoints_rad: Sequence[Sequence[float]] | np.ndarray, limit
         if not np.all(np.isfinite(q)) or np.any(q < lower - 1e-9) or np.any(q > upper + 1e-9):
             raise TrajectoryError(f"waypoint {i} {np.round(q, 4).tolist()} is outside the joint limits")
     velocities = _pass_through_velocities(waypoints, limits) if pass_through else np.zeros_like(waypoints)
+    a0 = None
+    if start_velocity_radps is not None or start_acceleration_radps2 is not None:
+        v0 = np.zeros(limits.dof) if start_velocity_radps is None else np.asarray(start_velocity_radps, dtype=float)
+        a0 = np.zeros(limits.dof) if start_acceleration_radps2 is None else np.asarray(start_acceleration_radps2,
+                                                                                       dtype=float)
+        if v0.shape != (limits.dof,) or a0.shape != (limits.dof,) or not np.all(np.isfinite(v0) & np.isfinite(a0)):
+            raise TrajectoryError(f"the start velocity and acceleration must be {limits.dof} finite numbers each")
+        velocities[0] = v0
     segments: list[ruckig.Trajectory] = []
     start_times: list[float] = []
     t = 0.0
     i = 0
     while i < len(waypoints) - 1:
-        result, traj = _ruckig_segment(limits, waypoints[i], velocities[i], waypoints[i + 1], velocities[i + 1])
+        result, traj = _ruckig_segment(limits, waypoints[i], velocities[i], waypoints[i + 1], velocities[i + 1],
+                                       a0 if i == 0 else None)
         ok = result in _RUCKIG_OK and all(lower[j] - 1e-9 <= e.min and e.max <= upper[j] + 1e-9
                                           for j, e in enumerate(traj.position_extrema))
         if not ok:
@@ -276,6 +291,41 @@ def plan_joint_path(waypoints_rad: Sequence[Sequence[float]] | np.ndarray, limit
         t += traj.duration
         i += 1
     return JointTrajectory(tuple(segments), tuple(start_times), waypoints, velocities, t)
+
+
+def plan_joint_stop(q_rad: Sequence[float], qd_radps: Sequence[float], qdd_radps2: Sequence[float],
+                    limits: JointMotionLimits) -> JointTrajectory:
+    """The quickest jerk-limited stop from a moving state: every joint brought to rest within the acceleration
+    and jerk limits (Ruckig's velocity interface, target velocity 0), wherever that leaves it.
+
+    Raises:
+        TrajectoryError: a wrong size, a non-finite state, Ruckig failing, or a stop that would cross a position
+            limit.
+    """
+    q, qd, qdd = (np.asarray(x, dtype=float) for x in (q_rad, qd_radps, qdd_radps2))
+    if any(x.shape != (limits.dof,) or not np.all(np.isfinite(x)) for x in (q, qd, qdd)):
+        raise TrajectoryError(f"a stop needs {limits.dof} finite positions, velocities and accelerations")
+    otg = ruckig.Ruckig(limits.dof)
+    inp = ruckig.InputParameter(limits.dof)
+    inp.control_interface = ruckig.ControlInterface.Velocity
+    inp.current_position, inp.current_velocity, inp.current_acceleration = q.tolist(), qd.tolist(), qdd.tolist()
+    inp.target_velocity = [0.0] * limits.dof
+    inp.target_acceleration = [0.0] * limits.dof
+    inp.max_velocity = list(limits.velocity_radps)
+    inp.max_acceleration = list(limits.acceleration_radps2)
+    inp.max_jerk = list(limits.jerk_radps3)
+    traj = ruckig.Trajectory(limits.dof)
+    try:
+        result = otg.calculate(inp, traj)
+    except RuntimeError:
+        result = ruckig.Result.ErrorInvalidInput
+    lower, upper = np.asarray(limits.lower_rad), np.asarray(limits.upper_rad)
+    if result not in _RUCKIG_OK or not all(lower[j] - 1e-9 <= e.min and e.max <= upper[j] + 1e-9
+                                           for j, e in enumerate(traj.position_extrema)):
+        raise TrajectoryError(f"no stop within the limits from {np.round(q, 4).tolist()} rad (Ruckig: {result})")
+    end = np.array(traj.at_time(traj.duration)[0])
+    return JointTrajectory((traj,), (0.0,), np.stack([q, end]), np.stack([qd, np.zeros(limits.dof)]),
+                           traj.duration)
 
 
 def plan_joint_move(q_start_rad: Sequence[float], q_goal_rad: Sequence[float],

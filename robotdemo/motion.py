@@ -14,8 +14,8 @@ import pinocchio as pin
 
 from controllers.ik import IKConfig, IKResult, IKSolver
 from controllers.kinematics import ArmKinematics
-from controllers.trajectory import (CartesianLimits, JointMotionLimits, JointTrajectory, plan_cartesian_line,
-                                    plan_joint_path)
+from controllers.trajectory import (CartesianLimits, JointMotionLimits, JointTrajectory, TrajectoryError,
+                                    plan_cartesian_line, plan_joint_path, plan_joint_stop)
 from robotdemo.assets import ARM_JOINTS, GRIPPER_JOINTS, TOOL_FRAME
 from robotdemo.errors import RobotDemoError
 from robotdemo.robot import GripperPosture, Robot
@@ -27,6 +27,10 @@ DOWN = np.diag([1.0, -1.0, -1.0])
 
 class UnreachableError(RobotDemoError):
     """A target pose is outside what the arm can reach."""
+
+
+MOVING_RADPS = 1e-6
+"""A commanded joint speed (rad/s) above which :meth:`ArmMotion.plan_path` counts the arm as still moving."""
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,8 @@ class ArmMotion:
         self.hand_ik = IKSolver(self.hand_kin, IKConfig())
         self.limits = JointMotionLimits.from_urdf_limits(self.pad_kin.lower_limits_rad, self.pad_kin.upper_limits_rad,
                                                          self.pad_kin.velocity_limits_radps, config.velocity_scale)
+        self.last_move: JointMove | None = None
+        """The planned move that gave the arm its last command (None before any)."""
 
     # -- frames -----------------------------------------------------------------------------------------------
     def to_base(self, position_w: np.ndarray, rotation_w: np.ndarray) -> pin.SE3:
@@ -86,10 +92,43 @@ class ArmMotion:
 
     # -- planning ---------------------------------------------------------------------------------------------
     def plan_path(self, waypoints: list[np.ndarray]) -> "JointMove":
-        """A Ruckig move from the current configuration through ``waypoints`` (rad), ending at rest."""
-        q0 = self.robot.arm_q()
-        return JointMove(self, plan_joint_path([np.clip(q0, self.limits.lower_rad, self.limits.upper_rad), *waypoints],
-                                               self.limits))
+        """A Ruckig move from the current configuration through ``waypoints`` (rad), ending at rest.
+
+        It starts at rest from the measured joints, unless the last arm command was a planned move's sample
+        with the arm still moving (a move cut short: a fault, a slip, a retried grasp). Then it starts from that
+        command, its velocity and acceleration, so the arm brakes and turns within the jerk and acceleration
+        limits instead of being told to stop within one tick.
+        """
+        robot = self.robot
+        moving = self.moving_last_tick()
+        q0 = robot.arm_target if moving else robot.arm_q()
+        start = np.clip(q0, self.limits.lower_rad, self.limits.upper_rad)
+        return JointMove(self, plan_joint_path(
+            [start, *waypoints], self.limits, start_velocity_radps=robot.arm_target_velocity_radps if moving else None,
+            start_acceleration_radps2=robot.arm_target_acceleration_radps2 if moving else None))
+
+    def moving_last_tick(self) -> bool:
+        """Whether the previous control tick commanded the arm a planned velocity (a move under way, not at its
+        end: a finished move ends at about 1e-14 rad/s)."""
+        robot = self.robot
+        qd = robot.arm_target_velocity_radps
+        return (qd is not None and float(np.max(np.abs(qd))) > MOVING_RADPS
+                and robot.sim.time_s - robot.arm_command_time_s <= 1.5 * self.config.control_period_s)
+
+    def stop_if_moving(self) -> "JointMove | None":
+        """A move that brings the arm to rest within the jerk and acceleration limits from the last command, if
+        the previous tick commanded it to move (a move was cut short and nothing took over); else None, and
+        also None if no such stop stays within the joint limits (the motors then hold their targets)."""
+        if not self.moving_last_tick():
+            return None
+        robot = self.robot
+        qdd = robot.arm_target_acceleration_radps2
+        try:
+            stop = plan_joint_stop(robot.arm_target, robot.arm_target_velocity_radps,
+                                   np.zeros(self.limits.dof) if qdd is None else qdd, self.limits)
+        except TrajectoryError:
+            return None
+        return JointMove(self, stop)
 
     def plan_pad_line(self, goal_w: np.ndarray, speed_mps: float, q_start: np.ndarray) -> "SampledMove":
         """The pad's centre in a straight line to ``goal_w`` (world), orientation held, tracked by IK."""
@@ -119,8 +158,9 @@ class JointMove:
         """Command the next sample and advance the physics one control tick. Returns True once finished."""
         m = self.motion
         self.t_s = min(self.t_s + m.config.control_period_s, self.trajectory.duration_s)
-        q, qd, _ = self.trajectory.sample(self.t_s)
-        m.robot.command_arm(q, qd)
+        q, qd, qdd = self.trajectory.sample(self.t_s)
+        m.robot.command_arm(q, qd, qdd)
+        m.last_move = self
         m.robot.sim.advance(m.config.control_period_s)
         self.tracking_errors_rad.append(float(np.max(np.abs(m.robot.arm_q() - q))))
         return self.done

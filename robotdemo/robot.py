@@ -128,6 +128,12 @@ class Robot:
                          contactStiffness=config.finger_contact_stiffness_n_per_m,
                          contactDamping=config.finger_contact_damping)
         self.arm_target = HOME_ARM_Q.copy()
+        self.arm_target_velocity_radps: np.ndarray | None = None
+        """The last arm command's velocity (rad/s), ``None`` where the command gave none (an IK-tracked pose)."""
+        self.arm_target_acceleration_radps2: np.ndarray | None = None
+        """The last arm command's acceleration (rad/s^2) where the command gave one (a planned move)."""
+        self.arm_command_time_s = sim.time_s
+        """Simulated time at which the arm was last commanded, s."""
         self.gripper_target = np.array(GripperPosture.stroke().q)
         self.gripper_effort_nm = config.grasp_effort_nm
         self.reset_to(HOME_ARM_Q, GripperPosture.stroke())
@@ -159,9 +165,15 @@ class Robot:
         self.command_arm(arm_q)
         self.command_gripper(posture)
 
-    def command_arm(self, q: Sequence[float], qd: Sequence[float] | None = None) -> None:
-        """Joint-motor targets for the arm (rad, rad/s), clipped to the joint limits."""
+    def command_arm(self, q: Sequence[float], qd: Sequence[float] | None = None,
+                    qdd: Sequence[float] | None = None) -> None:
+        """Joint-motor targets for the arm (rad, rad/s), clipped to the joint limits. ``qdd`` (rad/s^2), the
+        planned acceleration at this sample, goes to no motor; it is kept with ``qd`` so that a move taking
+        over from one cut short starts from where the command was heading (``ArmMotion.plan_path``)."""
         self.arm_target = np.clip(np.asarray(q, dtype=float), self.arm_lower, self.arm_upper)
+        self.arm_target_velocity_radps = None if qd is None else np.asarray(qd, dtype=float)
+        self.arm_target_acceleration_radps2 = None if qdd is None else np.asarray(qdd, dtype=float)
+        self.arm_command_time_s = self.sim.time_s
         self.sim.position_control(self.body, self.arm_joints, self.arm_target, self.arm_efforts,
                                   self.arm_speeds, target_velocities=qd, position_gain=self.config.position_gain,
                                   velocity_gain=self.config.velocity_gain)

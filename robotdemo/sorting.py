@@ -44,6 +44,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from controllers.stroke import StrokeConfig, StrokePhase
+from controllers.trajectory import TrajectoryError
 from perception.contact_trace import ObjectInfo
 from perception.materials import default_catalogue
 from perception.streams import MODALITIES, StrokeRecord
@@ -558,6 +559,8 @@ class SortingMachine:
         self.robot = scene.robot
         self.sim = scene.sim
         self.dt = self.motion.config.control_period_s
+        self._braking: JointMove | None = None
+        """The stop that brakes a move cut short, stepped in ticks in which no state moves the arm."""
         self.environment = ENVIRONMENTS[config.environment]
         catalogue = default_catalogue()
         self.combustible = catalogue.combustible
@@ -637,20 +640,38 @@ class SortingMachine:
         if state not in (State.DONE, State.RETREAT) and self.state_time_s > budget + 1e-9:
             self._fail(f"{state.value} exceeded its time budget of {budget:g} s")
         else:
-            {State.SELECT_OBJECT: self._select, State.APPROACH: self._approach, State.STROKE: self._stroke,
-             State.CLASSIFY: self._classify, State.PRE_GRASP: self._pre_grasp, State.GRASP: self._grasp_step,
-             State.LIFT: self._lift, State.TRANSPORT: self._transport, State.PLACE: self._place,
-             State.RELEASE: self._release, State.RETREAT: self._retreat}[state]()
+            try:
+                {State.SELECT_OBJECT: self._select, State.APPROACH: self._approach, State.STROKE: self._stroke,
+                 State.CLASSIFY: self._classify, State.PRE_GRASP: self._pre_grasp, State.GRASP: self._grasp_step,
+                 State.LIFT: self._lift, State.TRANSPORT: self._transport, State.PLACE: self._place,
+                 State.RELEASE: self._release, State.RETREAT: self._retreat}[state]()
+            except TrajectoryError as exc:  # e.g. braking from a move cut short would cross a joint limit
+                self.robot.command_arm(self.robot.arm_q())  # hold where it is; the next move starts at rest
+                if state is State.RETREAT:
+                    self._finish_object(f"the retreat could not be planned ({exc})")
+                else:
+                    self._fail(f"no trajectory within the joint limits in {state.value} ({exc})")
             if state is State.RETREAT and self.state is State.RETREAT and self.state_time_s > budget:
                 self._finish_object(f"retreat exceeded its time budget of {budget:g} s")
         stepped_s = self.sim.time_s - time_before
         if stepped_s == 0.0:
-            self.sim.advance(self.dt)
+            self._idle_tick()
         elif abs(stepped_s - self.dt) > 1e-9:
             raise RobotDemoError(f"internal: state {state.value} stepped {stepped_s} s of physics in one tick")
         self.tick += 1
         self.state_time_s += self.dt
         return self.state
+
+    def _idle_tick(self) -> None:
+        """A tick in which no state moved the arm: a move cut short the tick before (a fault, a slip) is braked
+        to rest within the jerk and acceleration limits; otherwise the motors hold their targets."""
+        braking = self._braking
+        if braking is None or braking.done or self.motion.last_move is not braking:
+            braking = self._braking = self.motion.stop_if_moving()
+        if braking is None:
+            self.sim.advance(self.dt)
+        else:
+            braking.step()
 
     def run(self, max_ticks: int = 1_000_000) -> dict[str, ObjectDecision]:
         """Step until DONE; returns :attr:`decisions`."""
@@ -770,6 +791,9 @@ class SortingMachine:
             high = self.motion.solve_pad(np.array([above[0], above[1], travel_z]), plan.rotation())
             if high.success:
                 self._stroke_waypoints.insert(0, high.q)
+            else:
+                self._emit(self.current_object.name, f"no IK for the travel-height waypoint over it (residual "
+                                                     f"{high.position_error_m * 1000:.1f} mm); going straight there")
         return ""
 
     def _plan_grasp(self, geometry: RestingGeometry) -> GraspPlan | str:
@@ -962,6 +986,9 @@ class SortingMachine:
                                             self.sim.link_state(self.robot.body, self.hand_link).rotation)
                 if up.success:
                     waypoints.append(up.q)
+                else:
+                    self._emit(obj.name, f"no IK for rising 6 cm first (residual {up.position_error_m * 1000:.1f} "
+                                         f"mm); going straight above the grasp")
             act.move = self.motion.plan_path(waypoints + [grasp.q_above])
             act.sub, act.timer_s = "move", 0.0
             return

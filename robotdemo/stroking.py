@@ -20,6 +20,9 @@ from robotdemo.scene import Scene, SceneObject
 
 RAW_CONTACT_POINTS = 8
 """PyBullet's contact manifold holds at most 4 points per pair; room for a few more from edge contacts."""
+STROKE_IK_LIMIT_M = 1e-3
+"""A stroke fails when IK leaves the commanded pad pose this far away (m): the pose is out of reach. The force
+IK converges to 0.1 um (``ArmMotion.force_ik``); a tick that stops short of that but within this limit goes on."""
 PATCH_GRID = 4
 MAX_CONTACT_POINTS = PATCH_GRID * PATCH_GRID
 
@@ -234,11 +237,14 @@ class StrokeExecution:
         self.slide_end: np.ndarray | None = None
         self.slide_time_s = 0.0
         self.command: StrokeCommand | None = None
+        self.ik_failure = ""
+        """Why IK could not follow the stroke's command (then the stroke has failed); empty otherwise."""
         self._last_logged: _LoggedStep | None = None
 
     @property
     def finished(self) -> bool:
-        return self.command is not None and (self.command.done or self.command.failed or len(self.forces) >= self.max_ticks)
+        return self.command is not None and (self.command.done or self.command.failed or bool(self.ik_failure)
+                                             or len(self.forces) >= self.max_ticks)
 
     @property
     def phase(self) -> StrokePhase | None:
@@ -267,7 +273,13 @@ class StrokeExecution:
             self.slide_end = self.actual[-1]
         if command.done or command.failed:
             return True
-        self.q = motion.force_ik.solve_local(motion.to_base(command.position_m, command.rotation), self.q).q
+        sol = motion.force_ik.solve_local(motion.to_base(command.position_m, command.rotation), self.q)
+        if not sol.success and sol.position_error_m > STROKE_IK_LIMIT_M:
+            self.ik_failure = (f"IK cannot follow the stroke in {command.phase.value} at "
+                               f"{np.round(command.position_m, 3).tolist()} m (residual "
+                               f"{sol.position_error_m * 1000:.1f} mm)")
+            return True
+        self.q = sol.q
         robot.command_arm(self.q)
         sim = self.scene.sim
         if not self.recording:
@@ -300,8 +312,12 @@ class StrokeExecution:
         command = self.command
         if command is None:
             raise RuntimeError("the stroke has not started")
-        failure = command.failure_reason if command.failed else ("" if command.done else "stroke did not finish in time")
-        return StrokeResult(config=self.config, success=command.done, failure_reason=failure,
+        if self.ik_failure:
+            failure = self.ik_failure
+        else:
+            failure = (command.failure_reason if command.failed
+                       else "" if command.done else "stroke did not finish in time")
+        return StrokeResult(config=self.config, success=command.done and not self.ik_failure, failure_reason=failure,
                             trace=self.recorder.to_trace(), force_log_n=np.array(self.forces),
                             phase_log=tuple(self.phases), commanded_m=np.array(self.commanded),
                             actual_m=np.array(self.actual), tracking_error_m=np.array(self.errors),

@@ -5,13 +5,18 @@ The classifier here is a stand-in that reads the record's ground-truth label (th
 emulated record): it exercises the robot side only, never the perception.
 """
 
+import dataclasses
+
 import numpy as np
 import pybullet as p
 import pytest
 
+from controllers.trajectory import TrajectoryError
+
 from perception.materials import default_catalogue
 from perception.streams import MODALITIES, StrokeRecord
 from robotdemo.classifier import Classification, average_classifications, decide_zone
+from robotdemo.motion import DOWN
 from robotdemo.scene import Scene, SceneConfig
 from robotdemo.sorting import FaultInjector, RestingGeometry, SortingConfig, SortingMachine, State, plan_stroke
 
@@ -192,6 +197,75 @@ def test_state_over_its_time_budget_fails_the_object_and_goes_on():
     assert second[0].decisions == machine.decisions
     for name, pose in first[4].items():
         np.testing.assert_allclose(second[4][name], pose, atol=1e-9)
+
+
+def test_a_move_cut_short_is_taken_over_within_the_acceleration_limits():
+    """TRANSPORT over its budget cuts the carrying move short with the arm at speed. The tick of the fault brakes
+    it, and the retreat's move starts from the command's velocity and acceleration, so over the whole run no
+    planned command changes its joint velocities faster than the acceleration limits allow."""
+    faults = FaultInjector(time_budget_s={State.TRANSPORT: 0.3})
+    with Scene(SceneConfig(n_objects=1, seed=4)) as scene:
+        machine = SortingMachine(scene, OracleClassifier(), SortingConfig(), seed=7, faults=faults)
+        log: list[tuple[int, State, np.ndarray | None]] = []
+        command_arm = scene.robot.command_arm
+
+        def logged(q, qd=None, qdd=None):
+            command_arm(q, qd, qdd)
+            log.append((machine.tick, machine.state, None if qd is None else np.array(qd)))
+
+        scene.robot.command_arm = logged
+        machine.run(max_ticks=20_000)
+        (d,) = machine.decisions.values()
+        assert d.failure_reason == "transport exceeded its time budget of 0.3 s"
+        a_max = np.array(machine.motion.limits.acceleration_radps2)
+        cut = max(i for i, (_, state, _) in enumerate(log) if state is State.TRANSPORT)
+        assert np.max(np.abs(log[cut][2])) > 0.3  # it was cut short at speed
+        # the tick of the fault itself brakes (no tick holds a stale target), then the retreat takes over
+        assert log[cut + 1][1] is State.RETREAT and log[cut + 1][2] is not None and log[cut + 1][0] == log[cut][0] + 1
+        planned = [(tick, qd) for tick, _, qd in log if qd is not None]
+        for (tick0, qd0), (tick1, qd1) in zip(planned, planned[1:]):
+            assert np.all(np.abs(qd1 - qd0) <= a_max * machine.dt * (tick1 - tick0) * (1 + 1e-6) + 1e-9), tick1
+
+
+def test_a_trajectory_that_cannot_be_planned_fails_the_object_not_the_run(monkeypatch):
+    with Scene(SceneConfig(n_objects=1, seed=4)) as scene:
+        machine = SortingMachine(scene, OracleClassifier(), SortingConfig(), seed=7)
+        plan_path = machine.motion.plan_path
+
+        def no_plan_in_pre_grasp(waypoints):
+            if machine.state is State.PRE_GRASP:
+                raise TrajectoryError("segment 0 -> 1 cannot be planned within the limits (Ruckig: test)")
+            return plan_path(waypoints)
+
+        monkeypatch.setattr(machine.motion, "plan_path", no_plan_in_pre_grasp)
+        machine.run(max_ticks=20_000)
+        (d,) = machine.decisions.values()
+        assert machine.done and not d.success
+        assert d.failure_reason == ("no trajectory within the joint limits in pre_grasp (segment 0 -> 1 cannot be "
+                                    "planned within the limits (Ruckig: test))")
+
+
+def test_a_safety_waypoint_without_ik_is_reported():
+    """Coming from afar, the pad goes over the next object at travel height first (so as not to sweep through
+    others); without an IK solution for that waypoint the machine says so in its events and goes straight
+    there."""
+    with Scene(SceneConfig(n_objects=2, seed=0)) as scene:
+        machine = SortingMachine(scene, OracleClassifier(), SortingConfig(), seed=0)
+        solve_pad = machine.motion.solve_pad
+        travel_z = scene.table_top_z_m + machine.config.travel_height_m
+
+        def no_travel_height(position_w, rotation_w=DOWN, q=None):
+            result = solve_pad(position_w, rotation_w, q)
+            if abs(position_w[2] - travel_z) < 1e-12:
+                return dataclasses.replace(result, success=False, position_error_m=0.012)
+            return result
+
+        machine.motion.solve_pad = no_travel_height
+        machine.run(max_ticks=40_000)
+        messages = [e.message for e in machine.events]
+        assert messages.count("no IK for the travel-height waypoint over it (residual 12.0 mm); going straight "
+                              "there") == 2  # each object is reached from afar: from home, then from the first
+        assert all(d.success for d in machine.decisions.values())
 
 
 def test_average_classifications_decides_from_mean_probabilities():

@@ -1,5 +1,7 @@
 """Force-regulated strokes executed in PyBullet through the joint motors (URDF efforts)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -87,6 +89,34 @@ def test_recording_ends_once_the_lift_has_cleared_the_surface():
         assert height == pytest.approx(config.approach_height_m, abs=1e-3)
     with pytest.raises(ValueError, match="release_record_s must be > 0 s"):
         StrokeExecution(scene, motion, obj, config, release_record_s=0.0)
+
+
+def test_stroke_fails_with_the_reason_when_ik_cannot_follow_it():
+    """An IK solve that stops far from the commanded pad pose fails the stroke at that tick, naming the phase
+    and the residual; the joints it found are not sent to the motors."""
+    with Scene(SceneConfig(n_objects=1, seed=1, categories=("metal",), shapes=("box",))) as scene:
+        obj = scene.objects[0]
+        motion = ArmMotion(scene.robot)
+        config = StrokeConfig(target_force_n=2.0, speed_mps=0.02, length_m=0.02, approach_height_m=0.006,
+                              start_point_m=tuple(top_surface_point(scene, obj, (-0.01, 0.0))))
+        move_pad_above(scene, motion, config)
+        execution = StrokeExecution(scene, motion, obj, config)
+        solve = motion.force_ik.solve_local
+
+        def out_of_reach_once_sliding(target, q_seed):
+            result = solve(target, q_seed)
+            if execution.phase is StrokePhase.SLIDE:  # as if the slide led out of the arm's reach
+                return dataclasses.replace(result, q=result.q + 0.3, success=False, position_error_m=0.004)
+            return result
+
+        motion.force_ik.solve_local = out_of_reach_once_sliding
+        while not execution.step():
+            commanded = scene.robot.arm_target.copy()
+        result = execution.result()
+        assert not result.success and result.phase_log[-1] is StrokePhase.SLIDE
+        assert result.failure_reason.startswith("IK cannot follow the stroke in slide at")
+        assert result.failure_reason.endswith("(residual 4.0 mm)")
+        np.testing.assert_array_equal(scene.robot.arm_target, commanded)  # the bad joints were not commanded
 
 
 def test_normal_force_rises_with_pressing():

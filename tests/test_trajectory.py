@@ -7,7 +7,7 @@ import pytest
 from controllers.ik import IKSolver
 from controllers.kinematics import ArmKinematics
 from controllers.trajectory import (CartesianLimits, JointMotionLimits, TrajectoryError, plan_cartesian_line,
-                                    plan_joint_move, plan_joint_path, plan_path_profile)
+                                    plan_joint_move, plan_joint_path, plan_joint_stop, plan_path_profile)
 from robotdemo.assets import ARM_JOINTS, ROBOT_URDF, TOOL_FRAME, urdf_path
 
 HOME_Q = np.array([0.0, -0.35, 1.9, 0.0, 1.15, 0.0])
@@ -78,6 +78,51 @@ def test_sampled_form_at_the_control_rate(limits):
     assert s.t_s[0] == 0.0 and s.t_s[-1] == pytest.approx(traj.duration_s)
     assert np.all(np.diff(s.t_s)[:-1] == pytest.approx(1.0 / RATE_HZ))
     assert s.q_rad.shape == s.qd_radps.shape == s.qdd_radps2.shape == (len(s.t_s), 6)
+
+
+def test_a_move_taken_over_while_moving_starts_from_that_state_and_respects_the_limits(kin, limits):
+    """A move cut short is taken over by one that starts with its velocity and acceleration: no step in the
+    command, and braking, turning and the rest within the limits."""
+    rng = np.random.default_rng(4)
+    speeds = []
+    for _ in range(30):
+        cut = plan_joint_path([kin.random_configuration(rng), kin.random_configuration(rng)], limits)
+        state = cut.sample(float(rng.uniform(0.2, 0.8)) * cut.duration_s)  # where it was cut short
+        speeds.append(float(np.max(np.abs(state.qd_radps))))
+        goal = kin.random_configuration(rng)
+        traj = plan_joint_path([state.q_rad, goal], limits, start_velocity_radps=state.qd_radps,
+                               start_acceleration_radps2=state.qdd_radps2)
+        start, end = traj.sample(0.0), traj.sample(traj.duration_s)
+        np.testing.assert_allclose(start.q_rad, state.q_rad, atol=1e-12)
+        np.testing.assert_allclose(start.qd_radps, state.qd_radps, atol=1e-9)
+        np.testing.assert_allclose(start.qdd_radps2, state.qdd_radps2, atol=1e-9)
+        np.testing.assert_allclose(end.q_rad, goal, atol=1e-9)
+        np.testing.assert_allclose(end.qd_radps, 0.0, atol=1e-9)
+        assert worst_relative_violation(traj, limits) <= 1e-6
+    assert min(speeds) > 0.1  # every one was taken over at speed
+    with pytest.raises(TrajectoryError, match="start velocity"):
+        plan_joint_path([np.zeros(6), np.full(6, 0.1)], limits, start_velocity_radps=np.zeros(5))
+    with pytest.raises(TrajectoryError, match="start velocity"):
+        plan_joint_path([np.zeros(6), np.full(6, 0.1)], limits, start_velocity_radps=np.full(6, np.nan))
+
+
+def test_a_stop_from_speed_respects_the_limits_and_ends_at_rest(kin, limits):
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        move = plan_joint_path([kin.random_configuration(rng), kin.random_configuration(rng)], limits)
+        state = move.sample(float(rng.uniform(0.2, 0.5)) * move.duration_s)
+        stop = plan_joint_stop(state.q_rad, state.qd_radps, state.qdd_radps2, limits)
+        start, end = stop.sample(0.0), stop.sample(stop.duration_s)
+        np.testing.assert_allclose(start.qd_radps, state.qd_radps, atol=1e-9)
+        np.testing.assert_allclose(end.qd_radps, 0.0, atol=1e-9)
+        np.testing.assert_allclose(end.q_rad, stop.waypoints_rad[-1], atol=1e-9)
+        assert worst_relative_violation(stop, limits) <= 1e-6
+        assert stop.duration_s < move.duration_s  # braking is quicker than the move it cuts short
+    near_limit = np.array(limits.upper_rad) - 1e-3
+    with pytest.raises(TrajectoryError, match="no stop within the limits"):
+        plan_joint_stop(near_limit, np.array(limits.velocity_radps), np.zeros(6), limits)
+    with pytest.raises(TrajectoryError, match="finite"):
+        plan_joint_stop(np.zeros(6), np.full(6, np.nan), np.zeros(6), limits)
 
 
 def test_waypoints_outside_limits_are_rejected(limits):
