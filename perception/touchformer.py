@@ -5,7 +5,8 @@
    the modality's features; modalities with g_m < gate_th are dropped; alpha_m = softmax over the kept gates;
    Z_m = alpha_m * (X_m + PE).
 3. Inter-modal Transformer (sec. 3.2): for every (target a, source b) pair, cross-attention
-   Y_{a<-b} = alpha_b * softmax(Q_a K_b^T / sqrt(d_k)) V_b; residual Z~_a = Z_a + sum_b Y_{a<-b}.
+   Y_{a<-b} = alpha_b * softmax(Q_a K_b^T / sqrt(d_k)) V_b; residual Z~_a = Z_a + sum_b Y_{a<-b} (eq. 9
+   writes Z^[0]_a + Y_{a<-b} for one source b; the three sources' outputs are summed here).
 4. Intra-modal Transformer: self-attention layers within each modality.
 5. Masked mean pooling; fused feature Z = concat_m(alpha_m * pooled_m) (eq. 12); a classifier head and an
    l2-normalised embedding head (for the CER loss, :mod:`perception.losses`).
@@ -30,6 +31,12 @@ Choices the paper leaves open, made here:
   1 (``perception.train.DEVIATIONS``); ``touchformer_soft`` keeps 1.
 - The paper names no classifier head after eq. 12; ours is linear. ``head_mlp=True`` (off by default) puts
   MulT's residual two-layer MLP (Tsai et al., 2019, which section 3.2 follows) between eq. 12 and both heads.
+- Eq. 4 gates the features, Z_m = alpha_m (X_m + PE); eqs. 5-6 define Z^[0]_m = Conv1D(X_m) + PE without
+  the weight, and eq. 9's residual starts from Z^[0]. The paper does not say where eq. 4's Z_m goes. Here
+  eq. 4 is applied to the Conv1D output, Z_m = alpha_m Z^[0]_m, and feeds the cross-attention (whose
+  pre-LayerNorm undoes the scale on Q, K and V) and, by default (``residual_base="gated"``), the residual
+  too. So alpha_m weighs a sensor's own stream there, each source's cross-attention output (eq. 8) and the
+  pooled feature (eq. 12). ``residual_base="plain"`` starts the residual from Z^[0] as eq. 9 writes it.
 - Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
   attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
   with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real
@@ -51,6 +58,7 @@ from perception.streams import MODALITIES
 
 N_MOD = len(MODALITIES)
 GATE_POOLS = ("input", "hidden")
+RESIDUAL_BASES = ("gated", "plain")
 
 
 @dataclass(frozen=True)
@@ -72,7 +80,8 @@ class TouchFormerConfig:
             with the threshold, it scored 2.7 points higher on SSMC validation and 4.1 on USMC.
         use_mag: MAG on; False gives uniform alphas over present modalities (ablation "fusion only").
         emb_dim: embedding size E of the l2-normalised embedding head.
-        dropout: dropout in the MLPs and on the attention outputs' projections.
+        dropout: dropout in the MLPs (the intra-modal blocks' and ``head_mlp``'s) and on the fused feature Z
+            before the heads.
         attn_dropout: dropout on the attention weights themselves. 0 by default: on CPU it forces PyTorch's
             attention onto its unfused path, and drawing the masks took 27 % of a training step at our
             sequence lengths (measured with torch.profiler, batch 32).
@@ -100,6 +109,9 @@ class TouchFormerConfig:
             pooling; False (the default) leaves them as the blocks made them, as MTCNN's encoders do. Off since
             session 22, on validation (``perception.train.DEVIATIONS["final_norm"]``); a config saved before
             the field existed had it on (:data:`SAVED_BEFORE`).
+        residual_base: what eq. 9's residual adds the cross-attention outputs to. "gated" (the default):
+            eq. 4's Z_m = alpha_m (X_m + PE), taken on the Conv1D output; "plain": eq. 6's Z^[0]_m = X_m + PE,
+            without the weight, as eq. 9 writes it (the module docstring, "Choices the paper leaves open").
     """
 
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"final_norm": True}
@@ -128,10 +140,19 @@ class TouchFormerConfig:
     gate_pool: str = "input"
     head_mlp: bool = False
     final_norm: bool = False
+    residual_base: str = "gated"
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
             raise ValueError(f"in_dims and kernel_sizes need {N_MOD} entries ({MODALITIES})")
+        for name in ("d_model", "n_heads", "gate_hidden", "emb_dim", "n_classes"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
+                raise ValueError(f"{name} must be a whole number >= 1, got {getattr(self, name)!r}")
+        if not (isinstance(self.n_layers, int) and self.n_layers >= 0):
+            raise ValueError(f"n_layers must be a whole number >= 0, got {self.n_layers!r}")
+        for name in ("dropout", "attn_dropout", "emb_dropout"):
+            if not (isinstance(getattr(self, name), (int, float)) and 0.0 <= getattr(self, name) < 1.0):
+                raise ValueError(f"{name} must lie in [0, 1), got {getattr(self, name)!r}")
         if self.d_model % self.n_heads != 0:
             raise ValueError(f"d_model {self.d_model} is not divisible by n_heads {self.n_heads}")
         if any(k % 2 == 0 for k in self.kernel_sizes):
@@ -144,6 +165,8 @@ class TouchFormerConfig:
             raise ValueError(f"stem_dilations must be positive, got {self.stem_dilations}")
         if self.gate_pool not in GATE_POOLS:
             raise ValueError(f"gate_pool must be one of {GATE_POOLS}, got {self.gate_pool!r}")
+        if self.residual_base not in RESIDUAL_BASES:
+            raise ValueError(f"residual_base must be one of {RESIDUAL_BASES}, got {self.residual_base!r}")
 
 
 @dataclass(frozen=True)
@@ -166,10 +189,10 @@ class TouchFormerSoftGateConfig(TouchFormerConfig):
     """Variant "MAG without its threshold": ``gate_th = 0``, so no modality is dropped and the gates only set
     the softmax weights; CER on. Not in the paper: on our data the threshold dropped sensors on training and
     test strokes alike, and this variant scored 2-4 points higher on SSMC and USMC validation and 8 on
-    fine-grained than TouchFormer at temperature 1 (the report before session 18's, README). Its softmax keeps
-    eq. 3's temperature 1, the setting it was chosen at (``gate_temperature`` 0.2 was measured only on the
-    thresholded TouchFormer). It keeps the closing LayerNorm for the same reason: without it, it lost 1.0
-    points on USMC validation and 2.9 on fine-grained (``final_norm``)."""
+    fine-grained than TouchFormer at temperature 1 (the report before session 18's;
+    docs/touchformer-findings.md). Its softmax keeps eq. 3's temperature 1, the setting it was chosen at
+    (``gate_temperature`` 0.2 was measured only on the thresholded TouchFormer). It keeps the closing LayerNorm for
+    the same reason: without it, it lost 1.0 points on USMC validation and 2.9 on fine-grained (``final_norm``)."""
 
     gate_th: float = 0.0
     gate_temperature: float = 1.0
@@ -196,14 +219,15 @@ class ModelOutput(NamedTuple):
 # helpers
 
 
-def sinusoidal_pe(length: int, d: int, device: torch.device) -> torch.Tensor:
-    """Sinusoidal positional embedding PE(T, d) (Vaswani et al.), returns (T, d)."""
+def sinusoidal_pe(length: int, d: int, device: torch.device, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Sinusoidal positional embedding PE(T, d) (Vaswani et al.), returns (T, d) in ``dtype`` (computed in
+    float32)."""
     pos = torch.arange(length, device=device, dtype=torch.float32)[:, None]  # (T, 1)
     freq = torch.exp(torch.arange(0, d, 2, device=device, dtype=torch.float32) * (-math.log(10_000.0) / d))
     pe = torch.zeros(length, d, device=device)  # (T, d)
     pe[:, 0::2] = torch.sin(pos * freq)
     pe[:, 1::2] = torch.cos(pos * freq[: d // 2])
-    return pe
+    return pe.to(dtype)
 
 
 def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -444,17 +468,19 @@ class TouchFormer(nn.Module):
             alphas = mag_weights(gates, present, c.gate_th, c.gate_temperature,
                                  straight_through=c.gate_straight_through and self.training)  # (B, M)
         else:
-            alphas = uniform_weights(present)  # (B, M)
+            alphas = uniform_weights(present).to(gates.dtype)  # (B, M)
         a = {m: alphas[:, i, None, None] for i, m in enumerate(MODALITIES)}  # (B, 1, 1) each
-        z0 = {}
+        plain, z0 = {}, {}
         for m in MODALITIES:
-            pe = sinusoidal_pe(x_hat[m].shape[1], c.d_model, x_hat[m].device)  # (T_m, d)
-            z0[m] = a[m] * self.emb_drop(x_hat[m] + pe)  # (B, T_m, d)
+            pe = sinusoidal_pe(x_hat[m].shape[1], c.d_model, x_hat[m].device, x_hat[m].dtype)  # (T_m, d)
+            plain[m] = self.emb_drop(x_hat[m] + pe)  # (B, T_m, d), eq. 6's Z^[0]
+            z0[m] = a[m] * plain[m]  # (B, T_m, d), eq. 4's Z_m
+        base = z0 if c.residual_base == "gated" else plain
 
         # 3. inter-modal cross-attention, each source's output scaled by its alpha, plus residual
         z_tilde = {}
         for tgt in MODALITIES:
-            y = z0[tgt]  # (B, T_tgt, d)
+            y = base[tgt]  # (B, T_tgt, d)
             for src in MODALITIES:
                 if src != tgt:
                     y = y + a[src] * self.cross[f"{tgt}_from_{src}"](z0[tgt], z0[src], valid[src])  # (B, T_tgt, d)

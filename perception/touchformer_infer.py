@@ -117,14 +117,15 @@ class FusedTouchFormer(nn.Module):
         x_hat = {m: ref.embed[m](batch.x[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
         gates = ref.gate([x_hat[m] for m in MODALITIES], [valid[m] for m in MODALITIES]) * present  # (B, M)
         alphas = (mag_weights(gates, present, c.gate_th, c.gate_temperature) if c.use_mag
-                  else uniform_weights(present))  # (B, M)
+                  else uniform_weights(present).to(gates.dtype))  # (B, M)
 
         # stack the modalities at one length T: z0 (M, B, T, d), key masks (M, B, T)
         t_max = max(x.shape[1] for x in x_hat.values())
         b = present.shape[0]
-        z0 = torch.stack([F.pad(x_hat[m] + self._positional(x_hat[m].shape[1]), (0, 0, 0, t_max - x_hat[m].shape[1]))
-                          for m in MODALITIES])  # (M, B, T, d)
-        z0 = z0 * alphas.t()[:, :, None, None]  # Z_m = alpha_m (X_m + PE)
+        plain = torch.stack([F.pad(x_hat[m] + self._positional(x_hat[m].shape[1]),
+                                   (0, 0, 0, t_max - x_hat[m].shape[1]))
+                             for m in MODALITIES])  # (M, B, T, d), Z^[0]_m = X_m + PE
+        z0 = plain * alphas.t()[:, :, None, None]  # Z_m = alpha_m (X_m + PE)
         steps_valid = torch.stack([F.pad(valid[m], (0, t_max - valid[m].shape[1])) for m in MODALITIES])  # (M, B, T)
         key_valid = steps_valid.clone()
         key_valid[:, :, 0] |= ~key_valid.any(dim=2)  # a row without valid keys attends to its first step
@@ -137,7 +138,8 @@ class FusedTouchFormer(nn.Module):
         y = self._attend(q.reshape(shape), k.reshape(shape), v.reshape(shape), key_valid[self.src_index])
         y = torch.baddbmm(self.cp_b, y.reshape(len(PAIRS), b * t_max, d), self.cp_w).reshape(shape)  # (12, B, T, d)
         y = y * alphas.t()[self.src_index][:, :, None, None]  # scaled by the source's alpha
-        z = z0 + y.reshape(N_MOD, N_MOD - 1, b, t_max, d).sum(dim=1)  # (M, B, T, d) residual
+        base = z0 if c.residual_base == "gated" else plain  # what the residual adds to (residual_base)
+        z = base + y.reshape(N_MOD, N_MOD - 1, b, t_max, d).sum(dim=1)  # (M, B, T, d) residual
 
         # 4. intra-modal self-attention, the four modalities at once
         z = z.reshape(N_MOD, b * t_max, d)

@@ -70,13 +70,15 @@ def train_and_score(model: torch.nn.Module, train: list[FeatureBatch], test: Fea
 
 
 @pytest.fixture(scope="module", params=[{}, {"stem_dilations": (1, 2)}, {"stem_dilations": (1, 2), "max_pool": True},
-                                        {"gate_pool": "hidden"}, {"head_mlp": True}, {"final_norm": True}],
+                                        {"gate_pool": "hidden"}, {"head_mlp": True}, {"final_norm": True},
+                                        {"residual_base": "plain"}],
                 ids=["paper", "dilated_stem", "dilated_stem_max_pool", "hidden_gate_pool", "head_mlp",
-                     "final_norm"])
+                     "final_norm", "plain_residual"])
 def model(request) -> TouchFormer:
     """The paper's model (one Conv1D per modality, mean pooling), and the options of residual dilated layers
     after that Conv1D, of mean+max pooling, of the gate pooled after its hidden layer, of MulT's residual
-    MLP before the heads and of a LayerNorm closing the intra-modal blocks."""
+    MLP before the heads, of a LayerNorm closing the intra-modal blocks and of eq. 9's residual from the
+    unweighted Z^[0]."""
     torch.manual_seed(0)
     return TouchFormer(tiny_config(**request.param)).eval()
 
@@ -295,6 +297,40 @@ def test_config_validation():
         tiny_config(gate_th=1.5)
     with pytest.raises(ValueError, match="stem_dilations"):
         tiny_config(stem_dilations=(1, 0))
+    with pytest.raises(ValueError, match="residual_base"):
+        tiny_config(residual_base="none")
+
+
+def test_residual_base_sets_how_much_of_its_own_stream_a_sensor_keeps():
+    # Same weights, the two readings of eq. 9. With alpha_m on the residual ("gated"), a sensor's own stream
+    # enters its intra-modal blocks scaled by alpha_m; from eq. 6's unweighted Z^[0] ("plain") it does not.
+    # With uniform alphas (no MAG) over four sensors, the gated base is exactly a quarter of the plain one,
+    # so the outputs differ; a stroke with a single sensor has alpha = 1 and both readings agree on it.
+    torch.manual_seed(5)
+    gated = TouchFormer(tiny_config(use_mag=False)).eval()
+    plain = TouchFormer(tiny_config(use_mag=False, residual_base="plain")).eval()
+    plain.load_state_dict(gated.state_dict())
+    batch = make_batch(seed=18)
+    with torch.no_grad():
+        assert not torch.allclose(gated(batch).logits, plain(batch).logits, atol=1e-4)
+        only_sound = FeatureBatch(x=batch.x, padding=batch.padding, labels=batch.labels,
+                                  present={m: batch.present[m] & (m == "sound") for m in MODALITIES})
+        torch.testing.assert_close(gated(only_sound).logits, plain(only_sound).logits)
+
+
+@pytest.mark.parametrize("use_mag", [True, False])
+def test_model_runs_in_bfloat16(use_mag):
+    # the positional embedding and the uniform weights follow the model's dtype instead of forcing float32
+    torch.manual_seed(6)
+    model = TouchFormer(tiny_config(use_mag=use_mag)).eval()
+    batch = make_batch(seed=19, p_missing=0.3)
+    half = FeatureBatch(x={m: v.to(torch.bfloat16) for m, v in batch.x.items()}, padding=batch.padding,
+                        present=batch.present, labels=batch.labels)
+    with torch.no_grad():
+        ref = model(batch)
+        out = model.to(torch.bfloat16)(half)
+    assert out.logits.dtype == torch.bfloat16 and torch.isfinite(out.logits.float()).all()
+    assert (out.logits.float().argmax(dim=1) == ref.logits.argmax(dim=1)).float().mean() >= 0.8
 
 
 def test_tiny_touchformer_learns_held_out():

@@ -35,7 +35,7 @@ def assert_same_outputs(model: TouchFormer, batch: FeatureBatch) -> None:
 @pytest.mark.parametrize("overrides", [{}, {"n_layers": 2, "n_heads": 4}, {"use_mag": False},
                                        {"gate_th": 0.6, "gate_temperature": 0.3}, {"max_pool": True},
                                        {"stem_dilations": (1, 2)}, {"gate_pool": "hidden"}, {"head_mlp": True},
-                                       {"final_norm": False}, {"final_norm": True}])
+                                       {"final_norm": False}, {"final_norm": True}, {"residual_base": "plain"}])
 def test_fused_matches_reference_with_padding_and_missing_modalities(overrides):
     # p_missing drops streams per stroke; strokes differ in length, so every modality is padded in the batch
     batch = make_batch(seed=3, n_per_class=4, p_missing=0.3)
