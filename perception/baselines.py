@@ -245,7 +245,8 @@ def build_model(name: str, in_dims: tuple[int, ...], n_classes: int, **overrides
 
     Raises:
         KeyError: unknown model name (the message lists the known ones).
-        ValueError: an override that is not a field of the model's config.
+        ValueError: an override that is not a field of the model's config, or values that the config or the
+            model's layers reject.
     """
     if name not in MODEL_REGISTRY:
         raise KeyError(f"unknown model {name!r}; known: {sorted(MODEL_REGISTRY)}")
@@ -254,5 +255,8 @@ def build_model(name: str, in_dims: tuple[int, ...], n_classes: int, **overrides
     unknown = sorted(set(overrides) - fields)
     if unknown:
         raise ValueError(f"{name}: unknown model option(s) {unknown}; known: {sorted(fields)}")
-    config = config_cls(in_dims=tuple(in_dims), n_classes=n_classes, **overrides)
-    return config, model_cls(config)
+    try:
+        config = config_cls(in_dims=tuple(in_dims), n_classes=n_classes, **overrides)
+        return config, model_cls(config)
+    except (TypeError, RuntimeError) as exc:  # a value of the wrong type or size for the model's layers
+        raise ValueError(f"{name}: model options {overrides} do not make a model: {exc}") from None

@@ -75,7 +75,8 @@ def run_inference_benchmark(source: str | os.PathLike = "touchformer", n: int = 
             name, model, fc, stats = ckpt.model_name, ckpt.model, ckpt.feature_config, ckpt.norm_stats
         else:
             if str(source) not in MODEL_REGISTRY:
-                raise KeyError(f"{source!r} is neither a checkpoint folder nor a model ({sorted(MODEL_REGISTRY)})")
+                raise ValueError(f"{source!r} is neither a checkpoint folder nor a model name "
+                                 f"({sorted(MODEL_REGISTRY)})")
             fc = FeatureConfig()
             dims = feature_dims(fc)
             torch.manual_seed(seed)

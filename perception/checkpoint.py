@@ -166,6 +166,8 @@ def _check_state(path: Path, state: Mapping[str, torch.Tensor], expected: Mappin
         if tuple(state[key].shape) != tuple(tensor.shape):
             raise CheckpointError(path, f"tensor {key!r} has shape {tuple(state[key].shape)}, "
                                         f"the config builds {tuple(tensor.shape)}")
+        if state[key].is_floating_point() and not bool(torch.isfinite(state[key]).all()):
+            raise CheckpointError(path, f"tensor {key!r} holds NaN or infinite values")
 
 
 def load_checkpoint(directory: str | os.PathLike, device: str | torch.device = "cpu") -> Checkpoint:
@@ -202,6 +204,9 @@ def load_checkpoint(directory: str | os.PathLike, device: str | torch.device = "
     for m in MODALITIES:
         if len(norm_stats.mean.get(m, ())) != dims[m] or len(norm_stats.std.get(m, ())) != dims[m]:
             raise CheckpointError(config_path, f"norm_stats for {m} do not have {dims[m]} channels")
+        values = norm_stats.mean[m] + norm_stats.std[m]
+        if not all(math.isfinite(v) for v in values) or min(norm_stats.std[m], default=1.0) <= 0:
+            raise CheckpointError(config_path, f"norm_stats for {m} hold NaN, infinite or non-positive std values")
     class_names = tuple(str(c) for c in record["class_names"])
     if len(class_names) != model_config.n_classes:
         raise CheckpointError(config_path, f"{len(class_names)} class names for n_classes={model_config.n_classes}")

@@ -115,6 +115,11 @@ def _read_manifest(path: Path) -> tuple[dict[str, Any], str]:
     for i, shard in enumerate(shards):
         if not isinstance(shard, dict) or not {"file", "n_strokes", "sha256"} <= set(shard):
             raise DatasetError(path, f"shard entry {i} needs 'file', 'n_strokes' and 'sha256'")
+        if not (isinstance(shard["file"], str) and shard["file"] and isinstance(shard["sha256"], str)
+                and isinstance(shard["n_strokes"], int) and not isinstance(shard["n_strokes"], bool)
+                and shard["n_strokes"] >= 0):
+            raise DatasetError(path, f"shard entry {i}: 'file' and 'sha256' must be strings and 'n_strokes' a "
+                                     f"whole number >= 0")
     return manifest, hashlib.sha256(raw).hexdigest()
 
 

@@ -85,13 +85,20 @@ def read_strokes(path: str | os.PathLike) -> list[StrokeRecord]:
         index = json.loads(arrays["index.json"].tobytes().decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise RecordingFormatError(f"{path}: index.json is not valid JSON ({exc})") from None
+    if not isinstance(index, dict):
+        raise RecordingFormatError(f"{path}: index.json is not a JSON object")
     if index.get("format") != FORMAT_NAME or index.get("version") != FORMAT_VERSION:
         raise RecordingFormatError(
             f"{path}: format {index.get('format')!r} v{index.get('version')!r}, expected {FORMAT_NAME} v{FORMAT_VERSION}")
     records = []
-    for i, entry in enumerate(index.get("strokes", [])):
+    entries = index.get("strokes", [])
+    if not isinstance(entries, list):
+        raise RecordingFormatError(f"{path}: index.json 'strokes' is not a list")
+    for i, entry in enumerate(entries):
         streams: dict[str, Stream | None] = {}
         try:
+            if not isinstance(entry.get("meta", {}), dict):
+                raise RecordingFormatError(f"{path}: stroke {i}: 'meta' is not a JSON object")
             for key in MODALITIES:
                 info = entry["streams"].get(key)
                 if info is None:
@@ -103,8 +110,9 @@ def read_strokes(path: str | os.PathLike) -> list[StrokeRecord]:
                 streams[key] = Stream(arrays[name], rate_hz=float(info["rate_hz"]), t0_s=float(info["t0_s"]))
             records.append(StrokeRecord(streams=streams, category=entry["category"], instance=entry["instance"],
                                         combustible=bool(entry["combustible"]), meta=entry.get("meta", {})))
-        except (KeyError, TypeError) as exc:
-            raise RecordingFormatError(f"{path}: stroke {i} index entry is missing {exc}") from None
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise RecordingFormatError(f"{path}: stroke {i} index entry is malformed "
+                                       f"({exc.__class__.__name__}: {exc})") from None
         except StreamError as exc:
             raise RecordingFormatError(f"{path}: stroke {i}: {exc}") from None
     return records

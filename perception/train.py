@@ -191,14 +191,27 @@ class TrainConfig:
             raise ValueError(f"optimizer must be 'adam' or 'adamw', got {self.optimizer!r}")
         if self.schedule not in ("cosine", "constant"):
             raise ValueError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
+        if self.epochs < 1 or self.batch_size < 1:
+            raise ValueError(f"epochs and batch_size must be >= 1, got {self.epochs} and {self.batch_size}")
         if not 0 <= self.warmup_epochs < self.epochs:
             raise ValueError(f"warmup_epochs must lie in [0, epochs), got {self.warmup_epochs}")
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"lr must be a positive number, got {self.lr}")
+        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
+            raise ValueError(f"weight_decay must be a number >= 0, got {self.weight_decay}")
+        if not (math.isfinite(self.feature_noise_std) and self.feature_noise_std >= 0):
+            raise ValueError(f"feature_noise_std must be a number >= 0, got {self.feature_noise_std}")
+        for key, value in self.model_overrides:
+            if key in ("in_dims", "n_classes"):
+                raise ValueError(f"model option {key} comes from the data and its features, not from an option")
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"model option {key} must be finite, got {value}")
+            if key.endswith("dropout") and not (isinstance(value, (int, float)) and 0.0 <= value < 1.0):
+                raise ValueError(f"model option {key} must lie in [0, 1), got {value!r}")
         if not 0.0 <= self.label_smoothing < 1.0:
             raise ValueError(f"label_smoothing must lie in [0, 1), got {self.label_smoothing}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {self.device!r}")
-        if self.epochs < 1 or self.batch_size < 1:
-            raise ValueError("epochs and batch_size must be >= 1")
         if not 0.0 <= self.corruption_ratio <= 1.0:
             raise ValueError(f"corruption_ratio must lie in [0, 1], got {self.corruption_ratio}")
         if not self.corruption_std >= 0.0:
@@ -207,6 +220,8 @@ class TrainConfig:
             raise ValueError(f"modality_dropout must lie in [0, 1), got {self.modality_dropout}")
         if not 0.0 < self.time_crop <= 1.0:
             raise ValueError(f"time_crop must lie in (0, 1], got {self.time_crop}")
+        if not math.isfinite(self.corruption_std):
+            raise ValueError(f"corruption_std must be finite, got {self.corruption_std}")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(f"val_fraction must lie in [0, 1), got {self.val_fraction}")
         if not 0.0 < self.train_fraction <= 1.0:
@@ -558,12 +573,19 @@ def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
         detail = " ".join(line.strip() for line in str(exc).splitlines()[1:] if line.strip())
         raise StaleRunError(f"{folder}: holds a model of another architecture "
                             f"({detail[:160] or exc}); use a fresh output folder") from None
-    state = {int(pid): {name: tensors[f"optim.{pid}.{name}"] for name in names}
-             for pid, names in record["optimizer_state_keys"].items()}
-    for group in record["optimizer_param_groups"]:
-        if isinstance(group.get("betas"), list):
-            group["betas"] = tuple(group["betas"])
-    optimizer.load_state_dict({"state": state, "param_groups": record["optimizer_param_groups"]})
+    try:
+        state = {int(pid): {name: tensors[f"optim.{pid}.{name}"] for name in names}
+                 for pid, names in record["optimizer_state_keys"].items()}
+        for group in record["optimizer_param_groups"]:
+            if isinstance(group.get("betas"), list):
+                group["betas"] = tuple(group["betas"])
+        optimizer.load_state_dict({"state": state, "param_groups": record["optimizer_param_groups"]})
+        missing = [key for key in ("epoch", "history", "best_epoch", "best_val_accuracy") if key not in record]
+        if missing:  # what resuming reads next
+            raise KeyError(", ".join(missing))
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise TrainError(f"{folder}: malformed resume state ({exc.__class__.__name__}: {exc}); delete the folder "
+                         f"to start afresh") from None
     return record
 
 

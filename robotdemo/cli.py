@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import ast
 import json
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Sequence
@@ -49,6 +50,7 @@ def _seconds_or_none(text: str, option: str) -> float | None:
 def _cmd_dataset(args: argparse.Namespace) -> int:
     from robotdemo.dataset import DatasetConfig, generate_dataset
 
+    _output_folder(args.out, "--out")
     objects = {} if args.objects_per_instance is None else {"objects_per_instance": args.objects_per_instance}
     if args.max_slide_s is not None:
         objects["max_slide_s"] = _seconds_or_none(args.max_slide_s, "--max-slide-s")
@@ -97,6 +99,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          time_crop=args.time_crop, corruption_ratio=args.corruption_ratio,
                          corruption_std=args.corruption_std,
                          model_overrides=overrides, feature_config=_feature_config(args.modalities))
+    _output_folder(args.out, "--out")
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet)
     print(json.dumps(metrics, indent=2, default=str))
@@ -128,6 +131,7 @@ def _model_option(text: str) -> tuple[str, object]:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from perception.evaluate import evaluate_command
 
+    _output_folder(args.out, "--out")
     summary = evaluate_command(args.data, args.out, quick=args.quick, fire_dir=args.fire, device=args.device,
                                seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet,
                                workers=args.workers, ablation=not args.no_ablation,
@@ -139,6 +143,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from robotdemo.demo import DEFAULT_CHECKPOINT, DemoConfig, run_demo
 
+    _output_file(args.report, "--report")
+    _output_file(args.record, "--record")
     config = DemoConfig(n_objects=args.objects, seed=args.seed, environment=args.env,
                         checkpoint=Path(args.checkpoint) if args.checkpoint else DEFAULT_CHECKPOINT,
                         report_path=Path(args.report) if args.report else None, meshcat=args.meshcat,
@@ -211,16 +217,16 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     scene = sub.add_parser("scene", help="build the sorting scene headless and print what it holds")
-    scene.add_argument("--objects", type=int, default=6)
-    scene.add_argument("--seed", type=int, default=0)
-    scene.add_argument("--seconds", type=float, default=1.0, help="simulated seconds to step after building")
+    scene.add_argument("--objects", type=_non_negative_int, default=6)
+    scene.add_argument("--seed", type=_non_negative_int, default=0)
+    scene.add_argument("--seconds", type=_seconds, default=1.0, help="simulated seconds to step after building")
     scene.add_argument("--gui", action="store_true", help="open PyBullet's GUI instead of running headless")
     scene.add_argument("--json", action="store_true")
     scene.set_defaults(func=_cmd_scene)
 
     demo = sub.add_parser("demo", help="sort the objects by touch (headless unless --meshcat or --record)")
-    demo.add_argument("--objects", type=int, default=6)
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--objects", type=_non_negative_int, default=6)
+    demo.add_argument("--seed", type=_non_negative_int, default=0)
     demo.add_argument("--env", choices=["clean", "fire"], default="fire", help="sensor environment")
     demo.add_argument("--checkpoint", default=None, help="classifier checkpoint folder "
                       "(default robotdemo/checkpoints/touchformer_fire)")
@@ -232,11 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     dataset = sub.add_parser("dataset", help="record the stroke data set (real strokes in PyBullet + sensor emulation)")
     dataset.add_argument("--out", required=True, help="output folder (resumed if it exists)")
-    dataset.add_argument("--strokes-per-instance", type=int, default=30)
+    dataset.add_argument("--strokes-per-instance", type=_positive_int, default=30)
     dataset.add_argument("--objects-per-instance", type=int, default=None,
                          help="distinct objects per material instance (default: DatasetConfig's, 10)")
     dataset.add_argument("--seed", type=int, default=0)
-    dataset.add_argument("--workers", type=int, default=1)
+    dataset.add_argument("--workers", type=_positive_int, default=1)
     dataset.add_argument("--env", choices=["clean", "fire"], default="clean")
     dataset.add_argument("--categories", default=None, help="comma-separated subset, e.g. metal,wood")
     dataset.add_argument("--max-slide-s", default=None, metavar="S",
@@ -308,9 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", default="reports")
     evaluate.add_argument("--fire", default=None, help="a fire-environment data set for the clean -> fire shift")
     evaluate.add_argument("--quick", action="store_true", help="a small run (few epochs, one seed)")
-    evaluate.add_argument("--seeds", type=int, nargs="*", default=None)
+    evaluate.add_argument("--seeds", type=_non_negative_int, nargs="+", default=None)
     evaluate.add_argument("--device", default="auto")
-    evaluate.add_argument("--workers", type=int, default=1,
+    evaluate.add_argument("--workers", type=_positive_int, default=1,
                           help="train the runs in this many processes first (one torch thread each)")
     evaluate.add_argument("--no-ablation", action="store_true", help="leave the ablation runs out")
     evaluate.add_argument("--no-robustness", action="store_true", help="leave the robustness curve out")
@@ -328,11 +334,13 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on (also each "
                        "stream's own accuracy); classifier: the data set the checkpoint was trained on (its "
                        "held-out part is used)")
-    bench.add_argument("--seeds", type=int, default=10, help="demo: number of seeds (fire environment)")
-    bench.add_argument("--objects", type=int, default=6, help="demo: objects per seed")
+    bench.add_argument("--seeds", type=_positive_int, default=10, help="demo: number of seeds (fire environment)")
+    bench.add_argument("--objects", type=_positive_int, default=6, help="demo: objects per seed")
     bench.add_argument("--oracle", action="store_true",
                        help="demo: classify with the true labels (the robot's handling alone; a diagnostic)")
-    bench.add_argument("--n", type=int, default=None, help="number of poses / plans (default 1000)")
+    bench.add_argument("--n", type=_positive_int, default=None,
+                       help="ik, trajectory: poses / plans (default 1000); inference: strokes (default 200); "
+                            "emulation: strokes (default 6)")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--stroke-s", type=float, default=1.0,
                        help="inference: length of the synthetic stroke, s (the data sets' median is about 2.2)")
@@ -346,12 +354,59 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _USER_ERROR_NAMES = {"TrainError", "CheckpointError"}
-"""perception's errors about bad input that are not ValueErrors (checked by name: importing perception.train
-here would load torch for every command)."""
+"""perception's errors about bad input that are not ValueErrors, and their subclasses (checked by name:
+importing perception.train here would load torch for every command)."""
 
 
 def _is_user_error(exc: BaseException) -> bool:
-    return isinstance(exc, (RobotDemoError, ValueError, FileNotFoundError)) or type(exc).__name__ in _USER_ERROR_NAMES
+    """Bad input or a path that cannot be read or written (OSError: missing, a file where a folder belongs,
+    no permission): one line. Anything else is a bug and keeps its traceback."""
+    return (isinstance(exc, (RobotDemoError, ValueError, OSError))
+            or any(cls.__name__ in _USER_ERROR_NAMES for cls in type(exc).__mro__))
+
+
+def _int_at_least(minimum: int) -> Callable[[str], int]:
+    """An argparse type: a whole number >= ``minimum`` (argparse names the option in its error)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+_positive_int, _non_negative_int = _int_at_least(1), _int_at_least(0)
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, got {text!r}")
+    return value
+
+
+def _output_folder(path: str, option: str) -> None:
+    """Fail before any work if ``path`` exists and is not a folder."""
+    if Path(path).exists() and not Path(path).is_dir():
+        raise RobotDemoError(f"{option} {path}: exists and is not a folder")
+
+
+def _output_file(path: str | None, option: str) -> None:
+    """Fail before any work if ``path`` is a folder or its parent is not one."""
+    if path is None:
+        return
+    target = Path(path)
+    if target.is_dir():
+        raise RobotDemoError(f"{option} {path}: is a folder; give a file name")
+    parent = target.parent
+    if parent.exists() and not parent.is_dir():
+        raise RobotDemoError(f"{option} {path}: {parent} is not a folder")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

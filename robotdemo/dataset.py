@@ -149,8 +149,8 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
             obj = scene.objects[0]
             # Clamped where it came to rest, as a lab fixes a sample for stroking: light, tall objects tipped
             # over their leading edge under the pad's friction, wedging the pad (29 % of stroke attempts
-            # failed, all on boxes and cylinders taller than half their length; README, "How the recording
-            # got faster").
+            # failed, all on boxes and cylinders taller than half their length; docs/speed-history.md,
+            # "How the recording got faster").
             scene.clamp(obj)
             motion = ArmMotion(scene.robot)
             scene.robot.command_gripper(GripperPosture.stroke())
@@ -221,6 +221,11 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
             previous = json.loads(manifest_path.read_text())
         except json.JSONDecodeError as exc:
             raise RobotDemoError(f"{manifest_path}: not valid JSON ({exc}); move it away to start over") from None
+        if not isinstance(previous, dict) or not isinstance(previous.get("shards", []), list) or not all(
+                isinstance(s, dict) and isinstance(s.get("file"), str) and isinstance(s.get("sha256"), str)
+                for s in previous.get("shards", [])):
+            raise RobotDemoError(f"{manifest_path}: not a data set manifest (its shard list is malformed); move "
+                                 "it away to start over")
         if previous.get("config") != json.loads(json.dumps(asdict(config))):
             raise RobotDemoError(f"{manifest_path}: written with another configuration; use another --out "
                                  "or the same options to resume")

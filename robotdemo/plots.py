@@ -55,6 +55,11 @@ def plot_strokes(records: Sequence[StrokeRecord], path: str | Path) -> Path:
         axes[-1, col].set_xlabel("time (s)")
     fig.tight_layout()
     path = Path(path)
+    if not path.suffix:  # what matplotlib would write: name it so
+        path = path.with_name(path.name + ".png")
+    if path.is_dir():
+        plt.close(fig)
+        raise ValueError(f"{path} is a folder; give a file name for the plot")
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)

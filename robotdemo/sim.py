@@ -160,7 +160,29 @@ def validate_urdf(path: str | Path) -> Path:
             ref = el.find(tag)
             if ref is None or ref.get("link") not in links:
                 raise AssetError(f"{path}: malformed URDF (joint {el.get('name')!r} names a missing {tag} link)")
+    for xpath, attr, count, non_negative in _URDF_NUMBERS:
+        for el in root.findall(".//" + xpath):
+            text = el.get(attr)
+            if text is None:
+                continue
+            try:
+                values = [float(v) for v in text.split()]
+            except ValueError:
+                values = []
+            if len(values) != count or not all(math.isfinite(v) for v in values) or (
+                    non_negative and min(values) < 0):
+                need = f"{count} finite number{'s' if count > 1 else ''}" + (" >= 0" if non_negative else "")
+                raise AssetError(f"{path}: malformed URDF (<{xpath.split('/')[-1]} {attr}={text!r}> needs {need})")
     return path
+
+
+_URDF_NUMBERS = (("origin", "xyz", 3, False), ("origin", "rpy", 3, False), ("axis", "xyz", 3, False),
+                 ("inertial/mass", "value", 1, True), *(("inertia", a, 1, a in ("ixx", "iyy", "izz"))
+                                                          for a in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")),
+                 ("box", "size", 3, True), ("cylinder", "radius", 1, True), ("cylinder", "length", 1, True),
+                 ("sphere", "radius", 1, True), ("mesh", "scale", 3, False), ("limit", "lower", 1, False),
+                 ("limit", "upper", 1, False), ("limit", "effort", 1, True), ("limit", "velocity", 1, True))
+"""Numeric URDF attributes :func:`validate_urdf` checks: (element, attribute, how many numbers, must be >= 0)."""
 
 
 class Simulator:

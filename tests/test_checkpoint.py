@@ -98,6 +98,21 @@ def test_truncated_and_corrupt_weights(tmp_path):
     _expect_error(tmp_path, WEIGHTS_FILE, "corrupt or truncated")
 
 
+def test_non_finite_weights_and_norm_stats(tmp_path):
+    model, _ = _save(tmp_path)
+    state = {k: v.contiguous().clone() for k, v in model.state_dict().items()}
+    key = next(k for k, v in state.items() if v.is_floating_point())
+    state[key].view(-1)[0] = float("nan")
+    safetensors.torch.save_file(state, str(tmp_path / WEIGHTS_FILE))
+    _expect_error(tmp_path, WEIGHTS_FILE, f"tensor '{key}' holds NaN or infinite values")
+    _save(tmp_path)
+    _edit_config(tmp_path, lambda r: r["norm_stats"]["mean"]["sound"].__setitem__(0, float("nan")))
+    _expect_error(tmp_path, CONFIG_FILE, "norm_stats for sound hold NaN")
+    _save(tmp_path)
+    _edit_config(tmp_path, lambda r: r["norm_stats"]["std"]["accel"].__setitem__(0, 0.0))
+    _expect_error(tmp_path, CONFIG_FILE, "norm_stats for accel hold NaN, infinite or non-positive std")
+
+
 def test_wrong_tensor_shapes(tmp_path):
     _save(tmp_path)
     _edit_config(tmp_path, lambda r: r["model_config"].update(gate_hidden=4))

@@ -85,7 +85,7 @@ def test_write_and_load_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("damage", ["no_manifest", "bad_json", "wrong_format", "missing_shard", "sha", "count",
-                                    "corrupt_shard", "no_folder"])
+                                    "corrupt_shard", "no_folder", "file_not_a_string", "count_not_a_number"])
 def test_load_errors_name_the_file(tmp_path, damage):
     recs = make_material_strokes(1, n_categories=2, n_instances=2, n_objects=1, n_strokes=1, duration_s=0.05)
     root = tmp_path / "ds"
@@ -116,12 +116,40 @@ def test_load_errors_name_the_file(tmp_path, damage):
         manifest["shards"][0]["sha256"] = __import__("hashlib").sha256(b"garbage").hexdigest()
         manifest_path.write_text(json.dumps(manifest))
         expect = shard.name
+    elif damage == "file_not_a_string":
+        manifest["shards"][0]["file"] = 5
+        manifest_path.write_text(json.dumps(manifest))
+    elif damage == "count_not_a_number":
+        manifest["shards"][0]["n_strokes"] = "ten"
+        manifest_path.write_text(json.dumps(manifest))
     else:
         root = tmp_path / "nowhere"
         expect = "nowhere"
     with pytest.raises(DatasetError, match=expect) as info:
         load_dataset(root)
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda index: [1], "index.json is not a JSON object"),
+    (lambda index: {**index, "strokes": 7}, "'strokes' is not a list"),
+    (lambda index: {**index, "strokes": [{**index["strokes"][0], "meta": 7}]}, "stroke 0: 'meta' is not a JSON"),
+    (lambda index: {**index, "strokes": [5]}, "stroke 0 index entry is malformed"),
+])
+def test_malformed_stroke_index_is_named(tmp_path, edit, message):
+    from perception.recording_io import RecordingFormatError, read_strokes, write_strokes
+
+    recs = make_material_strokes(2, n_categories=1, n_instances=1, n_objects=1, n_strokes=1, duration_s=0.05)
+    path = write_strokes(tmp_path / "s.npz", recs[:1])
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    index = json.loads(arrays["index.json"].tobytes().decode("utf-8"))
+    arrays["index.json"] = np.frombuffer(json.dumps(edit(index)).encode("utf-8"), dtype=np.uint8)
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    with pytest.raises(RecordingFormatError, match=message) as info:
+        read_strokes(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -144,6 +144,31 @@ def test_bad_urdf_gives_one_line_error(tmp_path):
     assert "dangling.urdf" in str(info.value) and "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize("bad, message", [
+    ('<mass value="heavy"/>', "<mass value='heavy'> needs 1 finite number >= 0"),
+    ('<mass value="-1"/>', "<mass value='-1'> needs 1 finite number >= 0"),
+    ('<mass value="nan"/>', "<mass value='nan'> needs 1 finite number >= 0"),
+    ('<origin xyz="0 zero" rpy="0 0 0"/>', "<origin xyz='0 zero'> needs 3 finite numbers"),
+])
+def test_urdf_numbers_are_checked(tmp_path, bad, message):
+    inertial = '<origin xyz="0 0 0" rpy="0 0 0"/><mass value="1"/>'
+    inertial = inertial.replace('<mass value="1"/>', bad) if bad.startswith("<mass") else \
+        inertial.replace('<origin xyz="0 0 0" rpy="0 0 0"/>', bad)
+    path = tmp_path / "numbers.urdf"
+    path.write_text(f"<robot name='x'><link name='a'><inertial>{inertial}"
+                    "<inertia ixx='1' ixy='0' ixz='0' iyy='1' iyz='0' izz='1'/></inertial></link></robot>")
+    with pytest.raises(AssetError) as info:
+        validate_urdf(path)
+    assert str(info.value) == f"{path}: malformed URDF ({message})"
+
+
+def test_every_committed_urdf_passes_the_checks():
+    paths = sorted(urdf_root().rglob("*.urdf"))
+    assert len(paths) >= 5
+    for path in paths:
+        validate_urdf(path)
+
+
 def test_simulation_config_is_deterministic():
     def run():
         with Simulator(SimConfig()) as sim:
