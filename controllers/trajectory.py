@@ -165,25 +165,36 @@ class JointTrajectory:
                                       np.array([s.qdd_radps2 for s in states]))
 
 
-def _ruckig_segment(limits: JointMotionLimits, q0: np.ndarray, v0: np.ndarray, q1: np.ndarray,
-                    v1: np.ndarray, a0: np.ndarray | None = None) -> tuple[ruckig.Result, ruckig.Trajectory]:
-    otg = ruckig.Ruckig(limits.dof)
+def _ruckig_input(limits: JointMotionLimits, q0: np.ndarray, v0: np.ndarray,
+                  a0: np.ndarray | None = None) -> ruckig.InputParameter:
+    """Ruckig's input from a start state (at zero acceleration unless ``a0``) under ``limits``, ending at zero
+    acceleration; the caller sets the target."""
     inp = ruckig.InputParameter(limits.dof)
     inp.current_position = q0.tolist()
     inp.current_velocity = v0.tolist()
     inp.current_acceleration = [0.0] * limits.dof if a0 is None else a0.tolist()
-    inp.target_position = q1.tolist()
-    inp.target_velocity = v1.tolist()
     inp.target_acceleration = [0.0] * limits.dof
     inp.max_velocity = list(limits.velocity_radps)
     inp.max_acceleration = list(limits.acceleration_radps2)
     inp.max_jerk = list(limits.jerk_radps3)
+    return inp
+
+
+def _ruckig_calculate(limits: JointMotionLimits, inp: ruckig.InputParameter
+                      ) -> tuple[ruckig.Result, ruckig.Trajectory]:
     traj = ruckig.Trajectory(limits.dof)
     try:
-        result = otg.calculate(inp, traj)
+        return ruckig.Ruckig(limits.dof).calculate(inp, traj), traj
     except RuntimeError:  # Ruckig raises on invalid input in some builds
         return ruckig.Result.ErrorInvalidInput, traj
-    return result, traj
+
+
+def _ruckig_segment(limits: JointMotionLimits, q0: np.ndarray, v0: np.ndarray, q1: np.ndarray,
+                    v1: np.ndarray, a0: np.ndarray | None = None) -> tuple[ruckig.Result, ruckig.Trajectory]:
+    inp = _ruckig_input(limits, q0, v0, a0)
+    inp.target_position = q1.tolist()
+    inp.target_velocity = v1.tolist()
+    return _ruckig_calculate(limits, inp)
 
 
 def _stopping_distance_rad(v: np.ndarray, a_max: np.ndarray, j_max: np.ndarray) -> np.ndarray:
@@ -305,20 +316,10 @@ def plan_joint_stop(q_rad: Sequence[float], qd_radps: Sequence[float], qdd_radps
     q, qd, qdd = (np.asarray(x, dtype=float) for x in (q_rad, qd_radps, qdd_radps2))
     if any(x.shape != (limits.dof,) or not np.all(np.isfinite(x)) for x in (q, qd, qdd)):
         raise TrajectoryError(f"a stop needs {limits.dof} finite positions, velocities and accelerations")
-    otg = ruckig.Ruckig(limits.dof)
-    inp = ruckig.InputParameter(limits.dof)
+    inp = _ruckig_input(limits, q, qd, qdd)
     inp.control_interface = ruckig.ControlInterface.Velocity
-    inp.current_position, inp.current_velocity, inp.current_acceleration = q.tolist(), qd.tolist(), qdd.tolist()
     inp.target_velocity = [0.0] * limits.dof
-    inp.target_acceleration = [0.0] * limits.dof
-    inp.max_velocity = list(limits.velocity_radps)
-    inp.max_acceleration = list(limits.acceleration_radps2)
-    inp.max_jerk = list(limits.jerk_radps3)
-    traj = ruckig.Trajectory(limits.dof)
-    try:
-        result = otg.calculate(inp, traj)
-    except RuntimeError:
-        result = ruckig.Result.ErrorInvalidInput
+    result, traj = _ruckig_calculate(limits, inp)
     lower, upper = np.asarray(limits.lower_rad), np.asarray(limits.upper_rad)
     if result not in _RUCKIG_OK or not all(lower[j] - 1e-9 <= e.min and e.max <= upper[j] + 1e-9
                                            for j, e in enumerate(traj.position_extrema)):

@@ -94,10 +94,10 @@ class ArmMotion:
     def plan_path(self, waypoints: list[np.ndarray]) -> "JointMove":
         """A Ruckig move from the current configuration through ``waypoints`` (rad), ending at rest.
 
-        It starts at rest from the measured joints, unless the last arm command was a planned move's sample
-        with the arm still moving (a move cut short: a fault, a slip, a retried grasp). Then it starts from that
-        command, its velocity and acceleration, so the arm brakes and turns within the jerk and acceleration
-        limits instead of being told to stop within one tick.
+        It starts at rest from the measured joints, unless the previous tick commanded a planned move still
+        under way (one cut short by a fault, a slip or a retried grasp, or the stop braking it). Then it starts
+        from that command, its velocity and acceleration, so the arm brakes and turns within the jerk and
+        acceleration limits instead of being told to stop within one tick.
         """
         robot = self.robot
         moving = self.moving_last_tick()
