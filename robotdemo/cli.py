@@ -142,13 +142,17 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from robotdemo.demo import DEFAULT_CHECKPOINT, DemoConfig, run_demo
+    from robotdemo.viewer import viewer_config_from_args
 
     _output_file(args.report, "--report")
-    _output_file(args.record, "--record")
+    _output_file(args.record_html, "--record")
+    viewer = viewer_config_from_args(args)
+    if (args.realtime or args.hold) and not (viewer is not None and viewer.live):
+        raise RobotDemoError("--realtime and --hold are for watching the live view: add --meshcat")
     config = DemoConfig(n_objects=args.objects, seed=args.seed, environment=args.env,
                         checkpoint=Path(args.checkpoint) if args.checkpoint else DEFAULT_CHECKPOINT,
-                        report_path=Path(args.report) if args.report else None, meshcat=args.meshcat,
-                        meshcat_host=args.meshcat_host, record_path=Path(args.record) if args.record else None)
+                        report_path=Path(args.report) if args.report else None, viewer=viewer,
+                        record_path=args.record_html, realtime=args.realtime, hold=args.hold)
     run_demo(config)
     return 0
 
@@ -213,6 +217,8 @@ def _format_flat(result: dict, prefix: str = "") -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from robotdemo.viewer import add_viewer_arguments
+
     parser = argparse.ArgumentParser(prog="robotdemo", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -231,9 +237,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--checkpoint", default=None, help="classifier checkpoint folder "
                       "(default robotdemo/checkpoints/touchformer_fire)")
     demo.add_argument("--report", default=None, metavar="FILE.json", help="write the JSON report here")
-    demo.add_argument("--meshcat", action="store_true", help="serve a live Meshcat view")
-    demo.add_argument("--meshcat-host", default="127.0.0.1", help="address the live view listens on")
-    demo.add_argument("--record", default=None, metavar="FILE.html", help="write an HTML replay here")
+    add_viewer_arguments(demo)
+    demo.add_argument("--realtime", action="store_true",
+                      help="with --meshcat: run no faster than the wall clock, for watching")
+    demo.add_argument("--hold", action="store_true",
+                      help="with --meshcat: keep serving the view after the run until Ctrl-C")
     demo.set_defaults(func=_cmd_demo)
 
     dataset = sub.add_parser("dataset", help="record the stroke data set (real strokes in PyBullet + sensor emulation)")

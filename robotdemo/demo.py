@@ -4,8 +4,10 @@ Headless by default. One line is printed per object as the machine finishes with
 true category and instance, prediction and confidence, gate weights, trusted sensors, strokes, zone reached,
 success and the failure reason; and a summary: sorting accuracy, grasp success rate, simulated and wall seconds,
 real-time factor) is written atomically, also when the run fails midway (then with ``"status": "error"`` and the
-error). With ``meshcat`` or ``record_path`` the scene is mirrored in :mod:`robotdemo.viewer` (if that module and
-Meshcat are available; otherwise the demo says so and goes on headless).
+error). With ``viewer`` or ``record_path`` the scene is mirrored in :mod:`robotdemo.viewer` (if Meshcat is
+available; otherwise the demo says so and goes on headless; a live server that cannot start leaves the recording).
+``realtime`` paces the run to the wall clock and ``hold`` keeps the live view served after it, for people
+watching from another machine.
 
 Typical use::
 
@@ -18,15 +20,18 @@ import io
 import statistics
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, Callable, TextIO
 
 import numpy as np
 
 from perception.atomic import atomic_write_json
 from robotdemo.errors import RobotDemoError
 from robotdemo.sorting import NO_FAULTS, Classifier, FaultInjector, SortingConfig, SortingMachine
+
+if TYPE_CHECKING:  # the viewer module loads Meshcat only when a run asks for it
+    from robotdemo.viewer import ViewerConfig
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "touchformer_fire"
 """The material classifier the demo loads unless told otherwise (trained on the ``fire`` environment)."""
@@ -42,9 +47,10 @@ class DemoConfig:
         environment: sensor environment, ``"clean"`` or ``"fire"``.
         checkpoint: classifier checkpoint folder (ignored when a classifier is passed to :func:`run_demo`).
         report_path: JSON report to write (``None``: none).
-        meshcat: serve a live Meshcat view.
-        meshcat_host: address the live view listens on.
+        viewer: the live Meshcat view (:class:`robotdemo.viewer.ViewerConfig`; ``None``: none unless recording).
         record_path: self-contained HTML replay to write (``None``: none).
+        realtime: pace the run to the wall clock (for watching; the simulation runs about 5x faster).
+        hold: after the run, keep serving the live view until Ctrl-C.
         max_sim_s: the run fails if sorting takes longer than this (simulated seconds).
         sorting: state-machine settings (its ``environment`` is replaced by ``environment``).
     """
@@ -54,9 +60,10 @@ class DemoConfig:
     environment: str = "fire"
     checkpoint: Path = DEFAULT_CHECKPOINT
     report_path: Path | None = None
-    meshcat: bool = False
-    meshcat_host: str = "127.0.0.1"
+    viewer: ViewerConfig | None = None
     record_path: Path | None = None
+    realtime: bool = False
+    hold: bool = False
     max_sim_s: float = 900.0
     sorting: SortingConfig = field(default_factory=SortingConfig)
 
@@ -95,22 +102,39 @@ def summarize(machine: SortingMachine | None, n_objects: int, sim_s: float, wall
 
 
 def _open_viewer(config: DemoConfig, out: TextIO) -> Any | None:
-    if not (config.meshcat or config.record_path is not None):
+    """The viewer the run asks for (:func:`robotdemo.viewer.start_viewer`: a live server that cannot start
+    leaves the recording), or None."""
+    if config.viewer is None and config.record_path is None:
         return None
     try:
-        from robotdemo.viewer import SceneViewer, ViewerConfig, ViewerUnavailable
+        from robotdemo.viewer import ViewerConfig, ViewerUnavailable, start_viewer
     except ImportError as exc:
         print(f"robotdemo: viewer unavailable ({exc}); running headless", file=out)
         return None
+    viewer_config = config.viewer if config.viewer is not None else ViewerConfig(live=False)
+    if config.record_path is not None:
+        viewer_config = replace(viewer_config, record=True)
     try:
-        viewer = SceneViewer(ViewerConfig(live=config.meshcat, host=config.meshcat_host,
-                                          record=config.record_path is not None))
+        viewer = start_viewer(viewer_config)
     except (ViewerUnavailable, ValueError, OSError) as exc:
         print(f"robotdemo: viewer unavailable ({exc}); running headless", file=out)
         return None
-    if viewer.url:
-        print(f"meshcat: {viewer.url}", file=out)
-    return viewer
+    return viewer  # start_viewer has printed the URL it serves
+
+
+def _hold(viewer: Any, out: TextIO) -> None:
+    """Keep the live view served until Ctrl-C (which ends the hold, not the run)."""
+    print("meshcat: the run is over; still serving the view, Ctrl-C to stop", file=out, flush=True)
+    try:
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        print("meshcat: stopped", file=out)
+
+
+def _taxel_normals_of(machine: SortingMachine) -> Callable[[], np.ndarray | None]:
+    """:func:`_taxel_normals` for the viewer to call only when it draws a frame."""
+    return lambda: _taxel_normals(machine)
 
 
 def _taxel_normals(machine: SortingMachine) -> np.ndarray | None:
@@ -180,7 +204,11 @@ def run_demo(config: DemoConfig, classifier: Classifier | None = None, out: Text
         while not machine.done:
             machine.step()
             if viewer is not None:
-                viewer.update(scene, taxel_normal_n=_taxel_normals(machine), labels=machine.labels())
+                viewer.update(scene, taxel_normal_n=_taxel_normals_of(machine), labels=machine.labels())
+            if config.realtime:  # no faster than the wall clock
+                ahead_s = (scene.sim.time_s - sim_start) - (time.perf_counter() - loop_start)
+                if ahead_s > 0:
+                    time.sleep(ahead_s)
             for name, d in machine.decisions.items():
                 if d.end_time_s is not None and name not in reported:
                     reported.add(name)
@@ -207,6 +235,8 @@ def run_demo(config: DemoConfig, classifier: Classifier | None = None, out: Text
                     viewer.update(scene, labels=machine.labels() if machine else None, force=True)
                     viewer.write_html(config.record_path)
                     print(f"recording: {config.record_path}", file=out)
+                if config.hold and report["status"] == "done" and viewer.url:
+                    _hold(viewer, out)
                 viewer.close()
         finally:
             if scene is not None:

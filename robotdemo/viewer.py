@@ -47,7 +47,7 @@ import weakref
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -851,25 +851,23 @@ class SceneViewer:
     def recorded_frames(self) -> int:
         return self._recording.n_frames if self._recording is not None else 0
 
-    def update(self, scene: Any, taxel_normal_n: np.ndarray | None = None,
+    def update(self, scene: Any, taxel_normal_n: np.ndarray | Callable[[], np.ndarray | None] | None = None,
                labels: Mapping[str, str] | None = None, force: bool = False) -> bool:
         """Mirror the scene's current state; cheap to call every control tick (it throttles itself).
 
         Args:
             scene: a :class:`~robotdemo.scene.Scene` (reads ``robot``, ``objects``, ``zones``, ``sim.time_s``).
             taxel_normal_n: the 16 normal forces of the tactile pad (N), taxel order (16,) or (4, 4);
-                ``None`` keeps the last values.
+                ``None`` keeps the last values; a callable returning them is called only when a frame is
+                drawn (the demo's taxel forces are too costly to compute every control tick).
             labels: predicted label per object name, for the objects classified so far.
             force: draw now whatever the rate limit says (e.g. the final state before :meth:`write_html`).
 
         Returns:
             Whether a frame was drawn (live or recorded).
         """
-        if taxel_normal_n is not None:
-            values = np.asarray(taxel_normal_n, dtype=float)
-            if values.size != HEATMAP_ROWS * HEATMAP_COLS:
-                raise ValueError(f"taxel_normal_n must hold {HEATMAP_ROWS * HEATMAP_COLS} values, got shape {values.shape}")
-            self._taxels = values.reshape(HEATMAP_ROWS, HEATMAP_COLS)
+        if not callable(taxel_normal_n):
+            self._set_taxels(taxel_normal_n)
         new_scene = self._scene_ref is None or self._scene_ref() is not scene
         if new_scene:                           # build it (a recording covers one scene), draw at once
             self._build_scene(scene)
@@ -883,6 +881,8 @@ class SceneViewer:
         rec_due = rec is not None and (rec.start_time_s is None or rec.frame_at(sim_t) > rec.frame)
         if not (force or new_scene or live_due or rec_due):
             return False
+        if callable(taxel_normal_n):
+            self._set_taxels(taxel_normal_n())
         if rec is not None:
             rec.begin_frame(sim_t)
         self._draw(scene, labels or {}, rec)
@@ -1028,6 +1028,14 @@ class SceneViewer:
         if rec is not None:
             rec.add_transform(("meshcat", *rel_path.split("/")), T)
 
+    def _set_taxels(self, taxel_normal_n: np.ndarray | None) -> None:
+        if taxel_normal_n is None:
+            return
+        values = np.asarray(taxel_normal_n, dtype=float)
+        if values.size != HEATMAP_ROWS * HEATMAP_COLS:
+            raise ValueError(f"taxel_normal_n must hold {HEATMAP_ROWS * HEATMAP_COLS} values, got shape {values.shape}")
+        self._taxels = values.reshape(HEATMAP_ROWS, HEATMAP_COLS)
+
     def _draw(self, scene: Any, labels: Mapping[str, str], rec: _Recording | None) -> None:
         robot = scene.robot
         kin = self._robot_kin
@@ -1113,7 +1121,7 @@ def add_viewer_arguments(parser: argparse.ArgumentParser) -> None:
                        help="web port of the live view (default: first free from 7000)")
     group.add_argument("--viewer-rate", metavar="HZ", type=float, default=25.0,
                        help="live view and recording rate, per simulated second (default 25)")
-    group.add_argument("--record-html", metavar="PATH", type=Path, default=None,
+    group.add_argument("--record-html", "--record", dest="record_html", metavar="PATH", type=Path, default=None,
                        help="write a self-contained HTML replay of the run (opens in a browser, no server)")
 
 

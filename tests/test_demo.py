@@ -5,6 +5,7 @@ The checkpoint here is a tiny untrained TouchFormer whose output layer is biased
 the plumbing (loading, featurizing, gate weights, report), not the perception.
 """
 
+import io
 import json
 
 import numpy as np
@@ -102,6 +103,40 @@ def test_demo_runs_end_to_end_and_writes_the_report(tiny_checkpoint, tmp_path, c
     assert summary["sorting_accuracy"] == 1.0 and summary["grasp_success_rate"] == 1.0
     assert summary["sim_s"] > 1.0 and summary["wall_s"] > 0 and summary["real_time_factor"] > 0
     assert not list(report_path.parent.glob(".*.tmp"))  # written atomically
+
+
+def test_demo_records_even_when_the_live_view_cannot_start(tiny_checkpoint, tmp_path, capsys):
+    """192.0.2.1 (TEST-NET-1) is no address of this machine: the live server cannot bind it, the warning says
+    so, and the replay asked for is still written."""
+    replay = tmp_path / "run.html"
+    rc = main(["demo", "--objects", "1", "--checkpoint", str(tiny_checkpoint), "--meshcat-host", "192.0.2.1",
+               "--record", str(replay)])
+    err = capsys.readouterr().err
+    assert rc == 0 and "live viewer unavailable" in err and "recording only" in err
+    assert replay.is_file() and replay.stat().st_size > 10_000
+
+
+def test_realtime_paces_the_run_to_the_wall_clock(tiny_checkpoint, tmp_path, capsys):
+    from robotdemo.demo import DemoConfig, run_demo
+
+    report = run_demo(DemoConfig(n_objects=1, seed=0, checkpoint=tiny_checkpoint, realtime=True), out=io.StringIO())
+    summary = report["summary"]
+    assert summary["sim_s"] > 1.0 and summary["real_time_factor"] <= 1.0
+    assert main(["demo", "--objects", "1", "--realtime"]) == 2
+    assert "add --meshcat" in capsys.readouterr().err
+
+
+def test_hold_serves_until_ctrl_c(monkeypatch):
+    from robotdemo import demo
+
+    def interrupt(_seconds):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(demo.time, "sleep", interrupt)
+    out = io.StringIO()
+    demo._hold(object(), out)
+    assert out.getvalue().splitlines() == ["meshcat: the run is over; still serving the view, Ctrl-C to stop",
+                                           "meshcat: stopped"]
 
 
 def test_demo_writes_a_partial_report_when_the_run_fails(tiny_checkpoint, tmp_path, capsys, monkeypatch):

@@ -192,6 +192,22 @@ def test_update_throttles_to_the_configured_rate(scene):
         Recorder().update(scene, np.zeros(9))
 
 
+def test_taxel_forces_given_as_a_callable_are_computed_only_for_drawn_frames(scene):
+    calls = []
+
+    def taxels():
+        calls.append(scene.sim.time_s)
+        return _taxels(2.0)
+
+    recorder = Recorder(fps=20.0)
+    drawn = 0
+    for _ in range(1000):
+        scene.sim.step()
+        drawn += recorder.update(scene, taxels)
+    assert len(calls) == drawn and 20 <= drawn <= 21
+    np.testing.assert_array_equal(recorder._taxels, np.asarray(_taxels(2.0)).reshape(4, 4))
+
+
 def test_a_new_scene_replaces_the_old_one_and_restarts_the_recording(tmp_path):
     recorder = Recorder(fps=25)
     for seed in (2, 3):
