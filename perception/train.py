@@ -38,8 +38,9 @@ from tqdm.auto import tqdm
 from perception.atomic import atomic_write
 from perception.baselines import MODEL_REGISTRY, build_model
 from perception.calibration import fit_temperature, nll
-from perception.checkpoint import config_from_dict, config_to_dict, load_checkpoint, save_checkpoint, set_temperature
-from perception.dataset import TASKS, labels_of
+from perception.checkpoint import (WEIGHTS_FILE, config_from_dict, config_to_dict, load_checkpoint, save_checkpoint,
+                                   set_temperature)
+from perception.dataset import TASKS, labels_of, sha256_file
 from perception.features import (FeatureBatch, FeatureConfig, NormStats, StrokeFeatures, collate, feature_dims,
                                  featurize, fit_norm_stats, keep_modalities, normalize)
 from perception.losses import total_loss
@@ -681,6 +682,8 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     identity = {"config": _trained_config(config), "class_names": list(names), "n_train": n, "n_val": len(norm_val),
                 "data_sha256": f"{strokes_fingerprint(records_train)}:{strokes_fingerprint(records_val)}",
                 "model_config": _model_config_json(type(model_config), config_to_dict(model_config))}
+    if config.init_checkpoint:  # the weights fine-tuned from, not only their folder's name
+        identity["init_sha256"] = sha256_file(Path(config.init_checkpoint) / WEIGHTS_FILE)
 
     resume_dir = out_dir / RESUME_DIR
     try:

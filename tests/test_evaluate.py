@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -176,6 +177,52 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
     no_fire = dataclasses.replace(config, models=("reference",), robustness_models=())
     evaluate(tmp_path / "clean", tmp_path / "nofire", config=no_fire, progress=False)
     assert "no `--fire` data set given" in (tmp_path / "nofire" / "REPORT.md").read_text()
+
+
+def _twin_recordings(n_per_class: int = 12):
+    """A clean and a fire recording of the same strokes (same instance, object and stroke draw), the fire one in
+    another order, as two ``robotdemo dataset`` runs with one seed give (the order here differs on purpose)."""
+    clean = make_material_strokes(0, n_categories=3, n_instances=2, n_objects=2, n_strokes=n_per_class // 4,
+                                  duration_s=0.05)
+    clean = [dataclasses.replace(r, meta={**r.meta, "stroke_seed": 1000 + i}) for i, r in enumerate(clean)]
+    order = np.random.default_rng(3).permutation(len(clean))
+    fire = [dataclasses.replace(clean[i], meta={**clean[i].meta, "env": "fire"}) for i in order]
+    return clean, fire
+
+
+def test_clean_models_of_the_fire_shift_never_train_on_a_fire_test_strokes_clean_twin():
+    from perception.dataset import ssmc_split
+    from perception.evaluate import clean_training_part
+
+    clean, fire = _twin_recordings()
+    key = lambda r: (r.instance, r.meta["object_id"], r.meta["stroke_seed"])  # noqa: E731
+    for seed in (0, 1, 2):
+        fire_test = ssmc_split(fire, seed)[1]
+        part = clean_training_part(clean, fire, fire_test, seed)
+        assert set(part) <= set(ssmc_split(clean, seed)[0])  # within the clean SSMC training part
+        assert not {key(clean[i]) for i in part} & {key(fire[i]) for i in fire_test}  # no twin of a test stroke
+        assert len(part) < len(ssmc_split(clean, seed)[0])  # the shuffled order put some twins there
+    # without stroke draws in the meta (e.g. converted recordings) it is the clean SSMC training part
+    plain = [dataclasses.replace(r, meta={"env": "clean"}) for r in clean]
+    np.testing.assert_array_equal(clean_training_part(plain, fire, ssmc_split(fire, 0)[1], 0),
+                                  ssmc_split(plain, 0)[0])
+
+
+def test_a_fine_tuned_run_is_trained_again_when_the_checkpoint_it_starts_from_changes(tmp_path):
+    from perception.train import StaleRunError, TrainConfig, train
+
+    clean, _ = _twin_recordings(8)
+    base = TrainConfig(model="lstm", epochs=1, batch_size=8, seed=0, model_overrides=(("hidden", 8),))
+    parent = tmp_path / "parent"
+    train(clean[:30], clean[30:40], base, parent, progress=False)
+    tuned = dataclasses.replace(base, init_checkpoint=str(parent / "checkpoint"))
+    train(clean[:30], clean[30:40], tuned, tmp_path / "tuned", progress=False)
+    train(clean[:30], clean[30:40], tuned, tmp_path / "tuned", progress=False)  # same parent: resumed
+    train(clean[10:40], clean[:10], base, tmp_path / "parent2", progress=False)
+    shutil.rmtree(parent)
+    shutil.copytree(tmp_path / "parent2", parent)  # the parent's folder now holds other weights
+    with pytest.raises(StaleRunError, match="another config"):
+        train(clean[:30], clean[30:40], tuned, tmp_path / "tuned", progress=False)
 
 
 def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
