@@ -535,6 +535,11 @@ def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optim
             pass  # not a config of this version: the identity check below says so
     if "model_config" not in record:  # saved before runs recorded their model's config
         record = {**record, **_checkpoint_model_config(out_dir / CHECKPOINT_DIR, model_config_cls)}
+    else:  # saved before a model field existed: that field at the value such configs had (its default)
+        try:
+            record = {**record, "model_config": _model_config_json(model_config_cls, record["model_config"])}
+        except (TypeError, ValueError, KeyError):
+            pass  # not a config of this model: the identity check below says so
     # a run saved before the data fingerprint (or the model config) was recorded is checked on the rest
     checked = {k: v for k, v in identity.items() if k in record or k not in ("data_sha256", "model_config")}
     if {k: record.get(k) for k in checked} != checked:

@@ -243,9 +243,16 @@ def test_resume_state_from_before_a_config_field_existed_is_resumed(toy, tmp_pat
     record = json.loads(state.read_text())
     del record["config"]["modality_dropout"]  # as written before the field was added
     del record["data_sha256"]  # as written before runs fingerprinted their strokes
+    del record["model_config"]["residual_base"]  # a model field added since, at its default
     state.write_text(json.dumps(record))
     again = _fit(toy, config, tmp_path / "run")
     assert again.resumed_from_epoch == 2 and again.best_epoch == full.best_epoch
+    # a model field added since whose saved value was not the default: that run is another one
+    record = json.loads(state.read_text())
+    del record["model_config"]["final_norm"]  # saved before final_norm existed: it had the LayerNorm
+    state.write_text(json.dumps(record))
+    with pytest.raises(TrainError, match="another config"):
+        _fit(toy, config, tmp_path / "run")
 
 
 def test_run_folder_is_not_reused_after_a_model_default_changed(toy, tmp_path, monkeypatch):
