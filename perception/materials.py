@@ -142,6 +142,9 @@ class MaterialSample:
             value = getattr(self, name)
             if not math.isfinite(value):
                 raise CatalogueError(f"material sample {self.instance!r}: {name} is not finite ({value})")
+            if value < 0 or (value == 0 and PARAMETER_RANGES[name][0] > 0):  # the emulation divides by them
+                raise CatalogueError(f"material sample {self.instance!r}: {name} must be "
+                                     f"{'positive' if PARAMETER_RANGES[name][0] > 0 else '>= 0'}, got {value}")
         if self.friction_static < self.friction_kinetic:
             raise CatalogueError(
                 f"material sample {self.instance!r}: friction_static {self.friction_static} < "

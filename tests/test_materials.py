@@ -130,6 +130,12 @@ def test_material_sample_rejects_inconsistent_friction_and_nan():
         dataclasses.replace(s, friction_static=0.1, friction_kinetic=0.5)
     with pytest.raises(CatalogueError, match="not finite"):
         dataclasses.replace(s, density_kg_m3=float("nan"))
+    # zero friction used to pass and turn into NaN in the emulation, which divides by it
+    with pytest.raises(CatalogueError, match="friction_kinetic must be positive, got 0.0"):
+        dataclasses.replace(s, friction_kinetic=0.0)
+    with pytest.raises(CatalogueError, match="restitution must be >= 0"):
+        dataclasses.replace(s, restitution=-0.1)
+    assert dataclasses.replace(s, restitution=0.0).restitution == 0.0
 
 
 def test_shore_conversion_is_monotonic_and_plausible():
