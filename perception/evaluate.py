@@ -1114,8 +1114,8 @@ def clean_training_part(clean: Sequence[StrokeRecord], fire: Sequence[StrokeReco
 
 def _fire_runs(ctx: _Context, model: str, seed: int) -> dict[str, _TrainJob]:
     """The three runs of ``model`` with ``seed`` in the clean -> fire experiment: ``clean`` (the clean strokes of
-    :func:`clean_training_part`, validation carved from them), ``finetuned`` (from the clean checkpoint, on the fire training part of the
-    seed's split) and ``scratch`` (that fire training part only)."""
+    :func:`clean_training_part`, validation carved from them), ``finetuned`` (from the clean checkpoint, on the
+    fire training part of the seed's split) and ``scratch`` (that fire training part only)."""
     assert ctx.fire is not None
     cfg, fire, s = ctx.config, ctx.fire, seed
     clean = _TrainJob(model, "ssmc", "clean_train", s, (fire.clean_train[s], np.zeros(0, dtype=np.int64)),

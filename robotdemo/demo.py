@@ -22,7 +22,7 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 
@@ -132,11 +132,6 @@ def _hold(viewer: Any, out: TextIO) -> None:
         print("meshcat: stopped", file=out)
 
 
-def _taxel_normals_of(machine: SortingMachine) -> Callable[[], np.ndarray | None]:
-    """:func:`_taxel_normals` for the viewer to call only when it draws a frame."""
-    return lambda: _taxel_normals(machine)
-
-
 def _taxel_normals(machine: SortingMachine) -> np.ndarray | None:
     """The 16 taxel normal forces of the current stroke's last physics step (for the viewer), N."""
     stroke = machine.stroke_execution
@@ -204,7 +199,8 @@ def run_demo(config: DemoConfig, classifier: Classifier | None = None, out: Text
         while not machine.done:
             machine.step()
             if viewer is not None:
-                viewer.update(scene, taxel_normal_n=_taxel_normals_of(machine), labels=machine.labels())
+                # the viewer calls it only for the frames it draws
+                viewer.update(scene, taxel_normal_n=lambda: _taxel_normals(machine), labels=machine.labels())
             if config.realtime:  # no faster than the wall clock
                 ahead_s = (scene.sim.time_s - sim_start) - (time.perf_counter() - loop_start)
                 if ahead_s > 0:
