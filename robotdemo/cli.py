@@ -128,6 +128,23 @@ def _model_option(text: str) -> tuple[str, object]:
     return key.strip(), parsed
 
 
+def _cmd_convert_lmt(args: argparse.Namespace) -> int:
+    from perception.lmt import LMTConfig, convert_lmt
+
+    _output_folder(args.out, "--out")
+    config = LMTConfig(sound_rate_hz=args.sound_rate_hz, force_rate_hz=args.force_rate_hz,
+                       accel_rate_hz=args.accel_rate_hz, resample=not args.no_resample, skip_bad=args.skip_bad,
+                       combustible_categories=frozenset(c.strip() for c in (args.combustible or "").split(",")
+                                                        if c.strip()))
+    result = convert_lmt(args.src, args.out, config, progress=not args.quiet)
+    absent = ", ".join(f"{m} {n}" for m, n in result.absent_streams.items() if n) or "none"
+    print(f"{args.out}: {result.n_recordings} recordings; {len(result.skipped_outside)} .mat files outside a material "
+          f"folder not read; {len(result.skipped_bad)} skipped as malformed; recordings without a stream: {absent}")
+    for path, problem in result.skipped_bad[:10]:
+        print(f"  skipped {path}: {problem}")
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from perception.evaluate import evaluate_command
 
@@ -166,7 +183,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         result = run_trajectory_benchmark(n_plans=args.n or 1000, seed=args.seed)
     elif args.what == "inference":
         from perception.bench_inference import run_inference_benchmark
-        result = run_inference_benchmark(args.checkpoint or "touchformer", n=args.n or 200, duration_s=args.stroke_s)
+        result = run_inference_benchmark(args.checkpoint or "touchformer", n=args.n or 200, duration_s=args.stroke_s,
+                                         seed=args.seed)
     elif args.what == "demo":
         from robotdemo.demo import DEFAULT_CHECKPOINT, run_demo_bench
         result = run_demo_bench(seeds=args.seeds, n_objects=args.objects, environment="fire",
@@ -316,6 +334,23 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")
     train.add_argument("--quiet", action="store_true")
     train.set_defaults(func=_cmd_train)
+
+    lmt = sub.add_parser("convert-lmt", help="convert recordings in the TUM/LMT haptic database layout into a "
+                                             "data set folder (to train on real data)")
+    lmt.add_argument("src", help="folder holding C<c>_S<s>_M<m>/ (or C<c>/S<s>/M<m>/) folders of .mat recordings")
+    lmt.add_argument("--out", required=True, help="data set folder to write")
+    lmt.add_argument("--sound-rate-hz", type=float, default=44_100.0, help="sound rate (default 44100)")
+    lmt.add_argument("--force-rate-hz", type=float, default=10_000.0,
+                     help="normalForce and frictionForce rate (default 10000, Texplorer2's; some loaders use 3000)")
+    lmt.add_argument("--accel-rate-hz", type=float, default=10_000.0, help="accelDFT rate (default 10000)")
+    lmt.add_argument("--no-resample", action="store_true",
+                     help="keep the source rates instead of resampling forces and acceleration to the pad's")
+    lmt.add_argument("--skip-bad", action="store_true",
+                     help="skip malformed recordings (counted and listed) instead of stopping at the first")
+    lmt.add_argument("--combustible", default=None, metavar="C1,C3",
+                     help="categories to label combustible (LMT has no such label; default none)")
+    lmt.add_argument("--quiet", action="store_true")
+    lmt.set_defaults(func=_cmd_convert_lmt)
 
     evaluate = sub.add_parser("evaluate", help="the paper's experiments on our data: REPORT.md, JSON, plots")
     evaluate.add_argument("--data", required=True)
