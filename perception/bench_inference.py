@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import threadpoolctl
 import torch
 
 from perception.baselines import MODEL_REGISTRY, build_model
@@ -69,6 +70,9 @@ def run_inference_benchmark(source: str | os.PathLike = "touchformer", n: int = 
     """
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
+    # NumPy's and SciPy's BLAS pools too: featurising runs inside the timed region, and with a second core busy
+    # their two threads had doubled the median (12 against 6.5 ms, session 25's review)
+    blas = threadpoolctl.threadpool_limits(1)
     try:
         if Path(source).is_dir():
             ckpt = load_checkpoint(source)
@@ -112,11 +116,12 @@ def run_inference_benchmark(source: str | os.PathLike = "touchformer", n: int = 
         ms = lambda v, q: float(np.percentile(np.asarray(v) * 1e3, q))  # noqa: E731
         median = ms(total, 50)
         return {"model": name, "engine": type(model).__name__, "source": str(source), "threads": 1,
-                "stroke_s": duration_s, "n": n,
+                "stroke_s": duration_s, "n": n, "seed": seed,
                 "batch1": {"median_ms": median, "p95_ms": ms(total, 95), "featurize_median_ms": ms(feat_ms, 50),
                            "forward_median_ms": ms(fwd_ms, 50), "reference_forward_median_ms": ms(ref_ms, 50),
                            "forward_speedup": ms(ref_ms, 50) / ms(fwd_ms, 50)},
                 f"batch{batch}": {"strokes_per_s": 1.0 / per_stroke, "ms_per_stroke": 1e3 * per_stroke},
                 "target_median_ms": TARGET_MEDIAN_MS, "meets_target": median < TARGET_MEDIAN_MS}
     finally:
+        blas.restore_original_limits()
         torch.set_num_threads(threads)

@@ -278,8 +278,12 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
 def test_inference_benchmark_reports_latency(tmp_path):
     from perception.bench_inference import run_inference_benchmark
 
-    result = run_inference_benchmark("mtcnn", n=5, batch=4, duration_s=0.3)
-    assert result["threads"] == 1 and result["model"] == "mtcnn"
+    import threadpoolctl
+
+    pools = [p["num_threads"] for p in threadpoolctl.threadpool_info()]
+    result = run_inference_benchmark("mtcnn", n=5, batch=4, duration_s=0.3, seed=3)
+    assert result["threads"] == 1 and result["model"] == "mtcnn" and result["seed"] == 3
+    assert [p["num_threads"] for p in threadpoolctl.threadpool_info()] == pools  # BLAS pools restored
     b1 = result["batch1"]
     assert 0 < b1["median_ms"] <= b1["p95_ms"] and b1["featurize_median_ms"] > 0
     assert result["batch4"]["strokes_per_s"] > 0 and isinstance(result["meets_target"], bool)
