@@ -17,8 +17,9 @@ Assumptions, all in :class:`LMTConfig`:
 
 - Rates: sound 44.1 kHz; normal force, friction force and acceleration 10 kHz (the Texplorer2 rates). These
   are assumptions: some public loaders of the database read the forces and the acceleration at 3 kHz. A
-  recording whose streams, at the configured rates, last more than 10 % apart is refused with the durations in
-  the message, so a wrong rate does not pass silently (``robotdemo convert-lmt --force-rate-hz ...``).
+  recording whose streams, at the configured rates, last more than 10 % apart (``max_duration_mismatch``) is
+  refused with the durations in the message, so a wrong rate does not pass silently (``robotdemo convert-lmt
+  --force-rate-hz ...``).
 - A missing or empty field is an absent stream (``None``), as the format allows; a malformed one (NaN, not
   1-D, complex) is an error naming the file, or with ``skip_bad`` the file is skipped and counted.
 - By default the streams are resampled (``scipy.signal.resample_poly``, anti-aliased, the ends padded by
@@ -60,8 +61,6 @@ STRUCT_NAME = "finalMaterialRecording"
 FIELDS = ("sound", "normalForce", "frictionForce", "accelDFT")
 FOLDER_PATTERN = re.compile(r"^C(\d+)_S(\d+)_M(\d+)")
 NESTED_PATTERNS = (re.compile(r"^C(\d+)$"), re.compile(r"^S(\d+)$"), re.compile(r"^M(\d+)$"))
-MAX_DURATION_MISMATCH = 0.10
-"""Largest relative difference between the streams' durations at the configured rates."""
 
 
 class LMTFormatError(ValueError):
@@ -86,6 +85,8 @@ class LMTConfig:
         combustible_categories: category names labelled combustible.
         shard_size: strokes per shard file.
         skip_bad: skip (and count) a recording that cannot be read or is malformed, instead of stopping.
+        max_duration_mismatch: largest relative difference between the streams' durations at the configured
+            rates (a guard against a wrong rate; raise it for recordings whose streams do differ in length).
     """
 
     sound_rate_hz: float = 44_100.0
@@ -96,12 +97,15 @@ class LMTConfig:
     combustible_categories: frozenset[str] = frozenset()
     shard_size: int = 128
     skip_bad: bool = False
+    max_duration_mismatch: float = 0.10
 
     def __post_init__(self) -> None:
         for name in ("sound_rate_hz", "force_rate_hz", "accel_rate_hz"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"LMTConfig: {name} must be a positive number of Hz, got {value!r}")
+        if not self.max_duration_mismatch >= 0:
+            raise ValueError(f"LMTConfig: max_duration_mismatch must be >= 0, got {self.max_duration_mismatch!r}")
 
 
 @dataclass(frozen=True)
@@ -226,7 +230,7 @@ def read_lmt_recording(path: str | os.PathLike, category: str, instance: str, co
         ("sound", sound, config.sound_rate_hz), ("forces", normal if normal is not None else friction,
                                                  config.force_rate_hz),
         ("accelDFT", accel, config.accel_rate_hz)) if x is not None}
-    if max(durations.values()) > (1 + MAX_DURATION_MISMATCH) * min(durations.values()):
+    if max(durations.values()) > (1 + config.max_duration_mismatch) * min(durations.values()):
         listed = ", ".join(f"{k} {v:.3g} s" for k, v in durations.items())
         raise LMTFormatError(path, f"the streams last different times at the configured rates ({listed}); check "
                                    f"the rates (sound {config.sound_rate_hz:g} Hz, forces {config.force_rate_hz:g} "

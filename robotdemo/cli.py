@@ -134,6 +134,7 @@ def _cmd_convert_lmt(args: argparse.Namespace) -> int:
     _output_folder(args.out, "--out")
     config = LMTConfig(sound_rate_hz=args.sound_rate_hz, force_rate_hz=args.force_rate_hz,
                        accel_rate_hz=args.accel_rate_hz, resample=not args.no_resample, skip_bad=args.skip_bad,
+                       max_duration_mismatch=args.max_duration_mismatch,
                        combustible_categories=frozenset(c.strip() for c in (args.combustible or "").split(",")
                                                         if c.strip()))
     result = convert_lmt(args.src, args.out, config, progress=not args.quiet)
@@ -343,6 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
     lmt.add_argument("--force-rate-hz", type=float, default=10_000.0,
                      help="normalForce and frictionForce rate (default 10000, Texplorer2's; some loaders use 3000)")
     lmt.add_argument("--accel-rate-hz", type=float, default=10_000.0, help="accelDFT rate (default 10000)")
+    lmt.add_argument("--max-duration-mismatch", type=float, default=0.10, metavar="FRACTION",
+                     help="refuse a recording whose streams last more than this share apart at the given rates "
+                          "(a guard against a wrong rate; default 0.1)")
     lmt.add_argument("--no-resample", action="store_true",
                      help="keep the source rates instead of resampling forces and acceleration to the pad's")
     lmt.add_argument("--skip-bad", action="store_true",
