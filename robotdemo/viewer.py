@@ -406,11 +406,13 @@ class _TreeWindow:
     def __init__(self) -> None:
         self.root = _Node()
         self.zmq_socket = None
+        self._zmq_address: tuple[str, float] | None = None
         self.lost_reason: str | None = None
         self.pending: list[tuple[bytes, bytes, bytes]] = []
         self.forwarded = 0
 
     def connect(self, zmq_url: str, timeout_s: float = 3.0) -> None:
+        self._zmq_address = (zmq_url, timeout_s)
         socket = zmq.Context.instance().socket(zmq.REQ)
         socket.setsockopt(zmq.LINGER, 0)
         socket.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
@@ -477,7 +479,12 @@ class _TreeWindow:
         except zmq.ZMQError as exc:
             self.lost_reason = f"the Meshcat server stopped answering ({exc})"
             self.close()
-        self.pending.clear()
+        except BaseException:  # interrupted between request and reply (Ctrl-C): a REQ socket then refuses the
+            self.close()       # next request, so start a fresh one for the final frame
+            self.connect(*self._zmq_address)
+            raise
+        finally:
+            self.pending.clear()
 
     def commands(self) -> Iterator[bytes]:
         """Every command that rebuilds the current scene, parents before children."""
@@ -627,7 +634,8 @@ class _ServerProcess:
         try:
             self.proc = subprocess.Popen(
                 [sys.executable, "-u", "-c", _CHILD_CODE, host, "auto" if port is None else str(port), str(os.getpid())],
-                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self.log, env=env)
+                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self.log, env=env,
+                start_new_session=True)  # a terminal's Ctrl-C reaches the demo, which then stops the server itself
         except OSError as exc:
             self.log.close()
             raise ViewerUnavailable(f"cannot start the Meshcat server process ({exc})") from None

@@ -149,6 +149,37 @@ def test_start_viewer_falls_back_to_recording_only(capsys, scene):
     assert start_viewer(None) is None
 
 
+def test_ctrl_c_in_a_terminal_stops_the_demo_quickly_and_keeps_the_replay(tmp_path):
+    """Ctrl-C goes to the terminal's whole process group. The Meshcat server runs in a session of its own, so
+    the demo, not the signal, stops it: the run ends at once with the replay written and no "stopped
+    answering" warning. Before, the server died with the demo and the demo's last update waited 3 s for it."""
+    import signal
+    import subprocess
+
+    replay = tmp_path / "run.html"
+    err_path = tmp_path / "err.txt"
+    with open(err_path, "w") as err:
+        demo = subprocess.Popen([sys.executable, "-m", "robotdemo", "demo", "--objects", "3", "--meshcat",
+                                 "--record", str(replay)], stdout=subprocess.DEVNULL, stderr=err,
+                                start_new_session=True)  # its own process group, as a terminal gives a job
+    try:
+        deadline = time.monotonic() + 120
+        while "Meshcat viewer at" not in err_path.read_text():
+            assert demo.poll() is None and time.monotonic() < deadline, err_path.read_text()
+            time.sleep(0.1)
+        time.sleep(1.0)  # sorting is under way
+        start = time.monotonic()
+        os.killpg(demo.pid, signal.SIGINT)
+        assert demo.wait(timeout=30) == 130
+        assert time.monotonic() - start < 3.0
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+    text = err_path.read_text()
+    assert "robotdemo: interrupted" in text and "stopped answering" not in text, text
+    assert replay.is_file() and replay.stat().st_size > 10_000
+
+
 def test_cli_arguments_map_to_a_config():
     parser = argparse.ArgumentParser()
     add_viewer_arguments(parser)
