@@ -66,15 +66,21 @@ def test_data_set_fixture_holds_force_with_fewer_solver_iterations(category, see
         assert np.linalg.norm(scene.object_pose(scene.objects[0])[0] - start) < 1e-4
 
 
+def _short_stroke_on_a_metal_box(scene: Scene):
+    """The scene's metal box, the motion, and a 2 N, 20 mm stroke on its top with the pad hovering above it."""
+    obj = scene.objects[0]
+    motion = ArmMotion(scene.robot)
+    config = StrokeConfig(target_force_n=2.0, speed_mps=0.02, length_m=0.02, approach_height_m=0.006,
+                          start_point_m=tuple(top_surface_point(scene, obj, (-0.01, 0.0))))
+    move_pad_above(scene, motion, config)
+    return obj, motion, config
+
+
 def test_recording_ends_once_the_lift_has_cleared_the_surface():
     """The trace ends ``release_record_s`` after the pad last touched the object; the lift goes on, unrecorded
     at the coarse step, to the hover height."""
     with Scene(SceneConfig(n_objects=1, seed=1, categories=("metal",), shapes=("box",))) as scene:
-        obj = scene.objects[0]
-        motion = ArmMotion(scene.robot)
-        config = StrokeConfig(target_force_n=2.0, speed_mps=0.02, length_m=0.02, approach_height_m=0.006,
-                              start_point_m=tuple(top_surface_point(scene, obj, (-0.01, 0.0))))
-        move_pad_above(scene, motion, config)
+        obj, motion, config = _short_stroke_on_a_metal_box(scene)
         execution = StrokeExecution(scene, motion, obj, config, release_record_s=0.05)
         while not execution.step():
             assert execution.recording or execution.phase is StrokePhase.LIFT
@@ -95,11 +101,7 @@ def test_stroke_fails_with_the_reason_when_ik_cannot_follow_it():
     """An IK solve that stops far from the commanded pad pose fails the stroke at that tick, naming the phase
     and the residual; the joints it found are not sent to the motors."""
     with Scene(SceneConfig(n_objects=1, seed=1, categories=("metal",), shapes=("box",))) as scene:
-        obj = scene.objects[0]
-        motion = ArmMotion(scene.robot)
-        config = StrokeConfig(target_force_n=2.0, speed_mps=0.02, length_m=0.02, approach_height_m=0.006,
-                              start_point_m=tuple(top_surface_point(scene, obj, (-0.01, 0.0))))
-        move_pad_above(scene, motion, config)
+        obj, motion, config = _short_stroke_on_a_metal_box(scene)
         execution = StrokeExecution(scene, motion, obj, config)
         solve = motion.force_ik.solve_local
 
