@@ -8,7 +8,9 @@ targets). Phases::
 
 * APPROACH: straight line (jerk-limited) from the initial tool position to the hover point, ``approach_height_m``
   above the expected contact point along the surface normal. Contact felt on the way starts PRESS at once.
-* PRESS: descend along the normal, fast until ``slow_zone_m`` above the expected surface and slowly below it; once
+* PRESS: descend along the normal, fast until ``slow_zone_m`` above the expected surface and slowly below it (the
+  descent speed changes along jerk-limited ramps, Ruckig's velocity interface, braking early enough to enter the
+  slow zone at ``contact_speed_mps``); once
   the force exceeds ``contact_force_n`` an admittance law on the normal offset takes over (below) and the contact
   stiffness is estimated from (offset, force) pairs. PRESS ends when the force reaches the target.
 * SETTLE: admittance only, until the force stays within ``settle_tolerance`` of the target for ``settle_time_s``.
@@ -35,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from controllers.trajectory import CartesianLimits, PathProfile, plan_path_profile
+from controllers.trajectory import CartesianLimits, PathProfile, plan_path_profile, plan_speed_ramp
 
 
 class StrokePhase(enum.Enum):
@@ -239,6 +241,9 @@ class StrokeController:
         self._approach_dir = self._approach_dir / length if length > 0 else np.zeros(3)
         self._profile: PathProfile = plan_path_profile(length, self._limits(cfg.approach_speed_mps))
         self._slide_m = 0.0
+        self._descent_mps, self._descent_mps2 = 0.0, 0.0  # PRESS descent speed and its rate, before contact
+        brake = plan_speed_ramp(cfg.press_speed_mps, 0.0, cfg.contact_speed_mps, self._limits(cfg.press_speed_mps))
+        self._brake_m = brake.at(brake.duration_s)[0]  # travel while slowing to the contact speed
         self._in_contact = False
         self._force_control = False
         self._k_est = cfg.stiffness_guess_n_per_m
@@ -295,13 +300,15 @@ class StrokeController:
         self._enter(StrokePhase.FAILED)
         return self._command()
 
-    def _admittance(self, force: float, dt_s: float) -> None:
+    def _admittance(self, force: float, dt_s: float) -> float:
+        """Move the normal offset by the admittance law; returns its rate, m/s (positive = away from the surface)."""
         cfg = self.config
         damping = self._k_est * cfg.admittance_time_constant_s  # N s/m
         rate = (force - cfg.target_force_n) / damping
         rate = min(max(rate, -min(cfg.contact_speed_mps, cfg.max_offset_rate_mps)), cfg.max_offset_rate_mps)
         self._offset_m += rate * dt_s
         self._force_control = True
+        return rate
 
     def _approach(self, force: float, dt_s: float) -> None:
         if self._in_contact:  # surface higher than expected: start pressing from here
@@ -319,13 +326,16 @@ class StrokeController:
         cfg = self.config
         if self._in_contact:
             self._update_stiffness(force)
-            self._admittance(force, dt_s)
+            self._descent_mps, self._descent_mps2 = -self._admittance(force, dt_s), 0.0  # if contact is lost again
             if force >= cfg.target_force_n * (1 - cfg.settle_tolerance):
                 self._enter(StrokePhase.SETTLE)
                 return
         else:
-            speed = cfg.press_speed_mps if self._offset_m > cfg.slow_zone_m else cfg.contact_speed_mps
-            self._offset_m -= speed * dt_s
+            fast = self._offset_m > cfg.slow_zone_m + self._brake_m
+            target = cfg.press_speed_mps if fast else cfg.contact_speed_mps
+            ramp = plan_speed_ramp(self._descent_mps, self._descent_mps2, target, self._limits(cfg.press_speed_mps))
+            travel, self._descent_mps, self._descent_mps2 = ramp.at(dt_s)
+            self._offset_m -= travel
         if self._offset_m < -cfg.max_press_depth_m:
             self._fail(f"target force not reached within max_press_depth_m {cfg.max_press_depth_m * 1e3:.1f} mm "
                        f"below the expected surface (last force {force:.3f} N)")

@@ -396,6 +396,57 @@ def plan_path_profile(length_m: float, limits: CartesianLimits) -> PathProfile:
 
 
 @dataclass(frozen=True)
+class SpeedRamp:
+    """A 1-D jerk-limited change of speed along a path, held at ``target_speed_mps`` once reached.
+
+    Attributes:
+        trajectory: Ruckig's velocity-interface trajectory from the start state to the target speed.
+        target_speed_mps: the speed held after the ramp, m/s.
+    """
+
+    trajectory: ruckig.Trajectory
+    target_speed_mps: float
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.trajectory.duration)
+
+    def at(self, t_s: float) -> tuple[float, float, float]:
+        """Distance from the start (m), speed (m/s) and acceleration (m/s^2) at ``t_s`` >= 0."""
+        t = max(float(t_s), 0.0)
+        s, v, a = self.trajectory.at_time(min(t, self.duration_s))
+        extra = max(t - self.duration_s, 0.0)
+        if extra > 0.0:
+            return float(s[0]) + self.target_speed_mps * extra, self.target_speed_mps, 0.0
+        return float(s[0]), float(v[0]), float(a[0])
+
+
+def plan_speed_ramp(speed_mps: float, acceleration_mps2: float, target_speed_mps: float,
+                    limits: CartesianLimits) -> SpeedRamp:
+    """The quickest jerk-limited change from (``speed_mps``, ``acceleration_mps2``) to ``target_speed_mps``
+    within ``limits`` (Ruckig's velocity interface); for motions whose end is not known in advance, such as a
+    descent that stops when contact is felt.
+
+    Raises:
+        TrajectoryError: a non-finite state or target, or Ruckig failing.
+    """
+    state = (speed_mps, acceleration_mps2, target_speed_mps)
+    if not all(np.isfinite(x) for x in state):
+        raise TrajectoryError(f"speed ramp needs finite speeds and acceleration, got {state}")
+    inp = ruckig.InputParameter(1)
+    inp.control_interface = ruckig.ControlInterface.Velocity
+    inp.current_position, inp.current_velocity = [0.0], [float(speed_mps)]
+    inp.current_acceleration, inp.target_velocity = [float(acceleration_mps2)], [float(target_speed_mps)]
+    inp.max_velocity = [max(limits.speed_mps, abs(float(speed_mps)), abs(float(target_speed_mps)))]
+    inp.max_acceleration, inp.max_jerk = [limits.acceleration_mps2], [limits.jerk_mps3]
+    traj = ruckig.Trajectory(1)
+    result = ruckig.Ruckig(1).calculate(inp, traj)
+    if result not in _RUCKIG_OK:
+        raise TrajectoryError(f"speed ramp {speed_mps} -> {target_speed_mps} m/s cannot be planned (Ruckig: {result})")
+    return SpeedRamp(traj, float(target_speed_mps))
+
+
+@dataclass(frozen=True)
 class CartesianPath:
     """A straight tool-frame line sampled at the control rate and solved by IK.
 

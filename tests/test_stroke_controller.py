@@ -81,6 +81,24 @@ def test_stroke_holds_force_and_slides_at_speed(stiffness_n_per_m, target_force_
     assert forces[-1] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_press_descends_within_the_acceleration_limit_and_meets_the_surface_slowly():
+    # before: PRESS jumped from rest to 10 mm/s in one tick (2.4 m/s^2 at 240 Hz), then to 2 mm/s in another
+    config = StrokeConfig(target_force_n=2.0, start_point_m=START_M)
+    log = run_stroke(config, SpringSurface(1e4))
+    assert log[-1][0].done, log[-1][0].failure_reason
+    press = [c for c, _, _ in log if c.phase is StrokePhase.PRESS and not c.force_control_active]
+    offsets = np.array([c.normal_offset_m for c in press])
+    speed = -np.diff(offsets) / DT_S
+    acceleration = np.diff(speed) / DT_S
+    assert speed.max() == pytest.approx(config.press_speed_mps, rel=1e-6)
+    assert np.abs(acceleration).max() <= config.slide_acceleration_mps2 * 1.001
+    assert np.abs(np.diff(acceleration)).max() / DT_S <= config.slide_jerk_mps3 * 1.001
+    in_slow_zone = offsets[1:] <= config.slow_zone_m
+    assert in_slow_zone.any()
+    assert speed[in_slow_zone].max() <= 1.5 * config.contact_speed_mps  # braked before, give or take a tick
+    assert speed[-1] == pytest.approx(config.contact_speed_mps, rel=1e-6)  # at contact
+
+
 def test_force_tracks_a_slightly_tilted_soft_surface():
     config = StrokeConfig(target_force_n=2.0, speed_mps=0.02, length_m=0.05, start_point_m=START_M)
     log = run_stroke(config, SpringSurface(2e3, tilt=0.02))
