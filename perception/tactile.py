@@ -39,6 +39,7 @@ from perception.contact_trace import ContactTrace, ContactTraceError, ObjectInfo
 from perception.sensors.contact_excitation import ContactConfig, compute_contact_excitation
 from perception.sensors.environment import (
     ENVIRONMENTS,
+    SENSOR_DEVICES,
     EnvironmentProfile,
     draw_dropouts,
     environment_sound,
@@ -106,7 +107,7 @@ def emulate_stroke(trace: ContactTrace, obj: ObjectInfo, env: EnvironmentProfile
     if trace.duration_s < 0.05:
         raise ContactTraceError(f"trace too short for the sensors: {trace.duration_s:.3f} s (need >= 0.05 s)")
 
-    dropped = draw_dropouts(MODALITIES, env, rng)
+    dropped = draw_dropouts(SENSOR_DEVICES, env, rng)
     offsets = {device: float(rng.uniform(0.0, env.clock_offset_max_s)) for device in ("uskin", "imu", "mic")}
     offsets = {device: min(t0, 0.5 * trace.duration_s) for device, t0 in offsets.items()}
     fs = config.sound.rate_hz

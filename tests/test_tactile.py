@@ -10,8 +10,11 @@ import scipy.signal
 
 from perception.contact_trace import ContactTrace, ContactTraceError, ObjectInfo, synthetic_press_slide_trace
 from perception.materials import MaterialSample, default_catalogue, nominal_sample
+from perception.sensors.contact_excitation import compute_contact_excitation
+from perception.sensors.imu import ImuConfig, imu_stream
 from perception.sensors.sound import modal_impulse_response
 from perception.sensors.taxels import TaxelArrayConfig, taxel_centres_m
+from perception.sensors.texture import make_surface_texture
 from perception.streams import MODALITIES, NOMINAL_RATE_HZ, NUM_CHANNELS, StrokeRecord
 from perception.tactile import ENVIRONMENTS, EnvironmentProfile, emulate_stroke
 
@@ -137,6 +140,23 @@ def test_normal_centroid_follows_the_contact_along_the_stroke():
         assert abs(shift @ np.array([-direction[1], direction[0]])) < 0.001
 
 
+def test_touch_down_impact_reaches_the_accelerometer():
+    sample = _sample("steel")
+    trace = synthetic_press_slide_trace(friction_coefficient=sample.friction_kinetic)
+    obj = ObjectInfo(sample, SIZE_M, "box", surface_seed=7)
+    excitation = compute_contact_excitation(trace, obj, make_surface_texture(sample, SIZE_M, 7),
+                                            np.random.default_rng(0))
+    onset_s = np.flatnonzero(excitation.impact_force_n)[0] / excitation.rate_hz
+    with_impact = imu_stream(excitation, trace, 0.0, np.random.default_rng(1))
+    quiet = dataclasses.replace(excitation, impact_force_n=np.zeros_like(excitation.impact_force_n))
+    without = imu_stream(quiet, trace, 0.0, np.random.default_rng(1))
+    times = np.arange(with_impact.shape[0]) / ImuConfig().rate_hz
+    effect = np.abs(with_impact - without)
+    assert np.all(effect[times < onset_s] == 0.0)  # causal: nothing before the touch-down
+    after = effect[(times >= onset_s) & (times < onset_s + 0.05), 2]
+    assert after.max() > 10 * np.std(without[times < 0.05, 2])  # the knock stands out of the sensor noise
+
+
 def test_dropout_marks_modalities_missing_never_all():
     env = EnvironmentProfile(name="flaky", dropout_probability=0.9)
     trace = synthetic_press_slide_trace(friction_coefficient=0.5, slide_s=0.3)
@@ -146,6 +166,7 @@ def test_dropout_marks_modalities_missing_never_all():
         rec = emulate_stroke(trace, obj, env, np.random.default_rng(seed))
         missing = {k for k in MODALITIES if rec.streams[k] is None}
         assert missing == set(rec.meta["dropped"])
+        assert ("normal" in missing) == ("friction" in missing)  # one uSkin streams both
         assert len(rec.present) >= 1
         seen_missing |= missing
         for key in rec.present:

@@ -31,7 +31,7 @@ class EnvironmentProfile:
         taxel_drift_scale: multiplies the taxels' per-taxel drift.
         heat_drift_counts_per_s: 1-sigma rate of the taxels' common (thermal) drift, counts/s.
         accel_vibration_rms_mps2: extra vibration in A (building, hoses, debris), m/s^2 RMS.
-        dropout_probability: chance that each modality drops out (at least one modality is kept).
+        dropout_probability: chance that each sensor device drops out (at least one device is kept).
         clock_offset_max_s: each sensor's clock offset is drawn in [0, this], s.
     """
 
@@ -159,9 +159,22 @@ def environment_sound(n: int, fs_hz: float, env: EnvironmentProfile, rng: np.ran
     return out
 
 
-def draw_dropouts(modalities: tuple[str, ...], env: EnvironmentProfile, rng: np.random.Generator) -> frozenset[str]:
-    """Modalities that drop out in this stroke (each with ``env.dropout_probability``; never all)."""
-    dropped = [m for m in modalities if rng.uniform() < env.dropout_probability]
-    if len(dropped) == len(modalities):
-        dropped.pop(int(rng.integers(len(dropped))))
-    return frozenset(dropped)
+SENSOR_DEVICES: Mapping[str, tuple[str, ...]] = MappingProxyType(
+    {"mic": ("sound",), "uskin": ("normal", "friction"), "imu": ("accel",)})
+"""Physical sensor -> the modalities it streams: N and F come from the one uSkin, so they drop out together."""
+
+
+def draw_dropouts(devices: Mapping[str, tuple[str, ...]], env: EnvironmentProfile,
+                  rng: np.random.Generator) -> frozenset[str]:
+    """Modalities that drop out in this stroke: each device fails with ``env.dropout_probability`` and takes all
+    its modalities with it; never every device.
+
+    Args:
+        devices: device name -> its modalities (e.g. :data:`SENSOR_DEVICES`).
+        env: environment profile.
+        rng: the stroke's random generator.
+    """
+    failed = [d for d in devices if rng.uniform() < env.dropout_probability]
+    if len(failed) == len(devices):
+        failed.pop(int(rng.integers(len(failed))))
+    return frozenset(m for d in failed for m in devices[d])

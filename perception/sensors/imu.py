@@ -1,11 +1,12 @@
 """Fingertip accelerometer (A stream, 500 Hz, 3 axes, pad frame).
 
 a(t) = rigid-body acceleration from the simulator
-     + texture/stick-slip force fluctuations on the pad through the fingertip's mechanical response,
+     + texture/stick-slip force fluctuations and touch-down impacts on the pad through the fingertip's
+       mechanical response,
        a single resonance: A(s) / F(s) = (1 / m) s^2 / (s^2 + 2 zeta w s + w^2)
        (a mass on the compliant finger: flat F / m above the resonance, rolled off below it),
      + environment vibration, sensor noise (white, from the noise density) and a per-stroke bias.
-The sum is resampled to the IMU rate through an anti-aliasing filter (the IMU's digital low-pass).
+The sum is sampled at the IMU rate through its causal decimation filter (:func:`~.resample.sensor_samples`).
 """
 
 from __future__ import annotations
@@ -78,11 +79,12 @@ def imu_stream(excitation: ContactExcitation, trace: ContactTrace, t0_s: float, 
         (n, 3) acceleration, pad frame, m/s^2.
     """
     fs = excitation.rate_hz
-    # Force on the pad: friction fluctuation opposes the motion, the normal one pushes along -z.
+    # Force on the pad: friction fluctuation opposes the motion; the normal fluctuation and the touch-down
+    # impact pulse push along -z (the rigid-body trace has the arm's motion but not the finger's compliance).
     force = np.column_stack([
         -excitation.shear_fluctuation_n * excitation.slide_direction[:, 0],
         -excitation.shear_fluctuation_n * excitation.slide_direction[:, 1],
-        -excitation.normal_fluctuation_n,
+        -(excitation.normal_fluctuation_n + excitation.impact_force_n),
     ])
     b, a = fingertip_response_ba(cfg, fs)
     vibration = scipy.signal.lfilter(b, a, force, axis=0)

@@ -6,8 +6,10 @@ Signal chain, per 100 Hz sample:
    width ``spread_sigma_m`` (the elastomer layer's Boussinesq-like spreading, approximated by a Gaussian
    of about its thickness) and integrated over each taxel's cell (pitch x pitch square): the erf-product
    below. Force that lands outside the 16 cells is not sensed.
-2. Crosstalk between 4-neighbour taxels (``neighbour_crosstalk`` of each neighbour's force, per axis),
-   and from the normal into the shear axes (small per-taxel coefficients of either sign).
+2. Crosstalk between 4-neighbour taxels: each taxel passes ``neighbour_crosstalk`` of its force (per axis) to
+   each 4-neighbour and keeps the rest, so the pad's total is conserved (a taxel pressed alone reads a little
+   less, its neighbours a little more; the sum over the pad still reads the applied force). Also from the
+   normal into the shear axes (small per-taxel coefficients of either sign).
 3. Saturation: a soft limit at ``saturation_normal_n`` per taxel (uSkin overload ~3 N) and
    ``saturation_shear_n`` in shear.
 4. Counts: per-device offset, per-taxel-axis gain variation, slow drift (linear rate plus random walk;
@@ -45,7 +47,7 @@ class TaxelArrayConfig:
         counts_per_newton_normal, counts_per_newton_shear: nominal sensitivity, counts/N.
         offset_counts_mean, offset_counts_spread: per-taxel-axis raw offset, counts.
         gain_spread: 1-sigma relative per-taxel-axis gain error.
-        neighbour_crosstalk: fraction of each 4-neighbour's force seen by a taxel.
+        neighbour_crosstalk: fraction of a taxel's force seen by each of its 4-neighbours (and not by itself).
         axis_crosstalk_spread: 1-sigma fraction of the normal force leaking into each shear axis.
         saturation_normal_n, saturation_shear_n: soft per-taxel force limits, N.
         saturation_sharpness: exponent of the soft limit x / (1 + |x / S|^p)^(1/p).
@@ -78,6 +80,11 @@ class TaxelArrayConfig:
     adc_max_counts: float = 65_535.0
     bias_window_s: float = 0.1
     device_seed: int = 20_240_611
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.neighbour_crosstalk < 0.25:
+            raise ValueError(f"neighbour_crosstalk must be in [0, 0.25) (a taxel keeps the rest of its force), "
+                             f"got {self.neighbour_crosstalk}")
 
     @property
     def num_taxels(self) -> int:
@@ -127,7 +134,7 @@ class _DeviceConstants:
     offsets: np.ndarray  # (16, 3) counts
     gains: np.ndarray  # (16, 3)
     axis_crosstalk: np.ndarray  # (16, 2) normal -> shear fraction
-    neighbours: np.ndarray  # (16, 16) crosstalk matrix (identity + neighbour fractions)
+    neighbours: np.ndarray  # (16, 16) crosstalk matrix, reading = M @ force; each column sums to 1
 
 
 @functools.lru_cache(maxsize=8)
@@ -137,12 +144,13 @@ def _device_constants(cfg: TaxelArrayConfig) -> _DeviceConstants:
     offsets = cfg.offset_counts_mean + cfg.offset_counts_spread * rng.standard_normal((n, 3))
     gains = 1.0 + cfg.gain_spread * np.clip(rng.standard_normal((n, 3)), -3, 3)
     axis_crosstalk = cfg.axis_crosstalk_spread * np.clip(rng.standard_normal((n, 2)), -3, 3)
-    neighbours = np.eye(n)
-    for i in range(n):
-        r, c = divmod(i, cfg.cols)
+    neighbours = np.zeros((n, n))
+    for j in range(n):  # column j: where taxel j's force is read
+        r, c = divmod(j, cfg.cols)
         for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
             if 0 <= r + dr < cfg.rows and 0 <= c + dc < cfg.cols:
-                neighbours[i, (r + dr) * cfg.cols + c + dc] = cfg.neighbour_crosstalk
+                neighbours[(r + dr) * cfg.cols + c + dc, j] = cfg.neighbour_crosstalk
+        neighbours[j, j] = 1.0 - neighbours[:, j].sum()
     return _DeviceConstants(offsets, gains, axis_crosstalk, neighbours)
 
 
