@@ -74,6 +74,24 @@ def test_forward_with_padding_and_a_missing_sensor_matches_the_cpu(toy):  # noqa
     assert float(gpu.alphas[1, 0]) == 0.0  # the missing sound gets no weight on the GPU either
 
 
+def test_bfloat16_forward_on_the_gpu_agrees_with_float32(toy):  # noqa: F811
+    torch.manual_seed(0)
+    dims = feature_dims(TrainConfig().feature_config)
+    _, model = build_model("touchformer", tuple(dims.values()), 3, d_model=16, n_heads=2, n_layers=1, gate_hidden=8,
+                           emb_dim=16)
+    feats = [dict(toy["feats"][i]) for i in range(8)]
+    feats[1]["sound"] = None
+    batch = collate(feats, dims).to("cuda")
+    half = dataclasses.replace(batch, x={m: v.to(torch.bfloat16) for m, v in batch.x.items()})
+    model = model.eval().to("cuda")
+    with torch.no_grad():
+        ref = model(batch)
+        out = model.to(torch.bfloat16)(half)
+    assert out.logits.dtype == torch.bfloat16 and bool(torch.isfinite(out.logits.float()).all())
+    torch.testing.assert_close(out.alphas.float(), ref.alphas, atol=0.05, rtol=0.05)
+    assert float(out.alphas[1, 0]) == 0.0  # the missing sound gets no weight in bfloat16 either
+    assert (out.logits.float().argmax(dim=1) == ref.logits.argmax(dim=1)).float().mean() >= 0.75
+
 def test_a_run_begun_on_the_gpu_resumes_on_the_gpu_and_on_the_cpu(toy, tmp_path):  # noqa: F811
     config = _config(epochs=3, device="cuda")
 
