@@ -40,6 +40,7 @@ import os
 import subprocess
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -193,9 +194,10 @@ def g_mean(y_true: Sequence[int], y_pred: Sequence[int], labels: Iterable[int] |
 
 
 def _mean_std(values: Sequence[float]) -> dict[str, float]:
+    """Mean and sample std (ddof 1; NaN below two values) of the finite values, and how many there were."""
     v = np.asarray([x for x in values if x == x], dtype=np.float64)
-    return {"mean": float(v.mean()) if v.size else float("nan"), "std": float(v.std()) if v.size else float("nan"),
-            "n": int(v.size)}
+    return {"mean": float(v.mean()) if v.size else float("nan"),
+            "std": float(v.std(ddof=1)) if v.size >= 2 else float("nan"), "n": int(v.size)}
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -277,6 +279,13 @@ def _class_names(records, task: str) -> tuple[str, ...]:
     return tuple(sorted(set(labels_of(records, task))))
 
 
+def _provenance_of(ctx: _Context, records) -> dict[str, Any]:
+    """The provenance a run's checkpoint records: the manifest hash of the data set it trains on."""
+    if ctx.fire is not None and records is ctx.fire.data.records:
+        return {**ctx.provenance, "data_manifest_sha256": ctx.fire.data.manifest_sha256}
+    return ctx.provenance
+
+
 def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, split_name: str, seed: int,
                corruption: float, records, features, class_names: tuple[str, ...], run_name: str | None,
                train_changes: Mapping[str, Any] | None, corruption_std: float = 1.0
@@ -293,7 +302,7 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     run_dir = _run_dir(ctx, model, task, split_name, corruption, run_name, corruption_std)
     res = train([records[i] for i in tr], [records[i] for i in val], cfg, run_dir, progress=False,
                 class_names=class_names, features_train=[features[i] for i in tr],
-                features_val=[features[i] for i in val], provenance=ctx.provenance, replace_stale=True)
+                features_val=[features[i] for i in val], provenance=_provenance_of(ctx, records), replace_stale=True)
     return res, cfg, val
 
 
@@ -344,6 +353,7 @@ def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarr
         res, cfg, val = _train_run(ctx, model, task, train_idx, split_name, seed, corruption, records, features,
                                    names, run_name, train_changes, corruption_std)
         ckpt = load_checkpoint(res.checkpoint_dir, device=resolve_device(cfg.device))
+        result["git_commit"] = ckpt.meta.get("git_commit")  # the code that trained it (a reused run: earlier)
         dims = feature_dims(ckpt.feature_config)
         test_feats = [keep_modalities(features[i], ckpt.feature_config.modalities) for i in test_idx]
         for drop in ("none",) + tuple(drops):
@@ -543,13 +553,23 @@ def _summary(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 # provenance, plots, report
 
 
-def _git_commit() -> str | None:
+def _git(*args: str) -> str | None:
     try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parents[1],
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() or None if out.returncode == 0 else None
+        out = subprocess.run(["git", *args], cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True,
+                             timeout=10)
+        return out.stdout.strip() if out.returncode == 0 else None
     except (OSError, subprocess.SubprocessError):
         return None
+
+
+def _git_commit() -> str | None:
+    return _git("rev-parse", "HEAD") or None
+
+
+def _git_dirty() -> bool | None:
+    """Whether tracked files differ from the commit (None outside a git checkout)."""
+    status = _git("status", "--porcelain", "--untracked-files=no")
+    return None if status is None else bool(status)
 
 
 def _plot_confusion(path: Path, y_true: np.ndarray, y_pred: np.ndarray, names: Sequence[str], title: str) -> None:
@@ -649,6 +669,16 @@ def _plot_tsne(path: Path, panels: Sequence[tuple[str, np.ndarray, np.ndarray]],
     plt.close(fig)
 
 
+def _seed_wins(per_seed: Mapping[str, Mapping[str, Sequence[float]]], model: str) -> dict[str, int]:
+    """Per corruption ratio: in how many seeds ``model`` is above every other model of that seed (paired by
+    seed; a difference of means can come from one seed)."""
+    if model not in per_seed:
+        return {}
+    others = [m for m in per_seed if m != model]
+    return {p: int(sum(all(acc > per_seed[o][p][i] for o in others) for i, acc in enumerate(runs)))
+            for p, runs in per_seed[model].items()}
+
+
 def _fitting_summary(per: Mapping[tuple[str, str], Sequence[Mapping[str, Any]]], models: Sequence[str]
                      ) -> dict[str, dict[str, dict[str, float]]]:
     """Per task and model, over its runs: the best (chosen) epoch, the training accuracy of the last epoch, the
@@ -690,22 +720,35 @@ def _plot_training_curves(path: Path, runs: Mapping[str, Mapping[str, Any]]) -> 
 
 
 def _pct(stat: Mapping[str, float]) -> str:
-    return "-" if stat["mean"] != stat["mean"] else f"{100 * stat['mean']:.2f} ± {100 * stat['std']:.2f}"
+    if stat["mean"] != stat["mean"]:
+        return "-"
+    return f"{100 * stat['mean']:.2f}" + (f" ± {100 * stat['std']:.2f}" if stat["std"] == stat["std"] else " (n=1)")
 
 
 def _g(stat: Mapping[str, float]) -> str:
-    return "-" if stat["mean"] != stat["mean"] else f"{stat['mean']:.2f} ± {stat['std']:.2f}"
+    if stat["mean"] != stat["mean"]:
+        return "-"
+    return f"{stat['mean']:.2f}" + (f" ± {stat['std']:.2f}" if stat["std"] == stat["std"] else " (n=1)")
+
+
+def _paper(value: Any) -> str:
+    """A figure from the paper as printed there (two decimals)."""
+    return f"{value:.2f}" if isinstance(value, (int, float)) else str(value)
 
 
 def _write_report(path: Path, results: Mapping[str, Any]) -> None:
     prov, cfg = results["provenance"], results["config"]
     lines = ["# TouchFormer evaluation on our data", "",
-             "Our numbers are mean ± std over seeds (SSMC, fine-grained) or folds (USMC); the paper's are on the "
+             "Our numbers are mean ± sample std (ddof 1) over seeds (SSMC, fine-grained) or folds (USMC); the paper's are on the "
              "LMT haptic database (LMTHM) unless said otherwise, so they set the scale, not a target to match "
              "on a different data set.", "",
              "## Provenance", "",
              f"- command: `{prov['command']}`",
-             f"- git commit: `{prov['git_commit']}`",
+             f"- git commit when this report was written: `{prov['git_commit']}`"
+             + (" (with uncommitted changes to tracked files)" if prov.get("git_dirty") else ""),
+             *([f"- runs by the commit that trained them (a run is reused while its config, data and model config "
+                f"are unchanged): " + ", ".join(f"`{c[:10]}` {n}" for c, n in prov["run_commits"].items())]
+               if prov.get("run_commits") else []),
              f"- data: `{prov['data_dir']}` (env {prov['data_env']}, {prov['n_strokes']} strokes, "
              f"{prov['n_categories']} categories, {prov['n_instances']} instances), manifest sha256 "
              f"`{prov['data_manifest_sha256']}`",
@@ -714,7 +757,7 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
              f"- seeds {cfg['seeds']}, USMC {cfg['n_folds']} folds, {cfg['train']['epochs']} epochs, batch "
              f"{cfg['train']['batch_size']}, {cfg['train']['optimizer']} lr {cfg['train']['lr']} wd "
              f"{cfg['train']['weight_decay']} ({cfg['train']['schedule']}), device {prov['device']}, quick={prov['quick']}",
-             f"- wall time {results['seconds']:.0f} s", ""]
+             f"- wall time of this command {results['seconds']:.0f} s (reused runs are not trained again)", ""]
 
     lines += ["## Table 1: material classification", "",
               "| task | model | accuracy [%] (ours) | G-mean (ours) | paper accuracy [%] | paper G-mean |",
@@ -723,10 +766,11 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
         for model, summ in per_model.items():
             paper = PAPER["table1"][task].get(model)
             lines.append(f"| {TASK_LABEL[task]} | {MODEL_LABEL.get(model, model)} | {_pct(summ['accuracy'])} | "
-                         f"{_g(summ['g_mean'])} | {paper[0] if paper else '-'} | {paper[1] if paper else '-'} |")
+                         f"{_g(summ['g_mean'])} | {_paper(paper[0]) if paper else '-'} | {_paper(paper[1]) if paper else '-'} |")
         for model, paper in PAPER["table1"][task].items():
             if model not in per_model:
-                lines.append(f"| {TASK_LABEL[task]} | {model} (paper only) | - | - | {paper[0]} | {paper[1]} |")
+                lines.append(f"| {TASK_LABEL[task]} | {model} (paper only) | - | - | {_paper(paper[0])} | "
+                             f"{_paper(paper[1])} |")
     lines.append("")
 
     if results.get("missing_modality"):
@@ -735,8 +779,8 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                   "|---|" + "---|" * (len(MODALITIES) + 1)]
         for model, row in results["missing_modality"].items():
             paper = PAPER["missing_modality_usmc"].get(model, {})
-            cells = [f"{_pct(row[m])} (paper {paper[m]})" if m in paper else _pct(row[m]) for m in MODALITIES]
-            cells.append(f"{_pct(row['none'])} (paper {paper['none']})" if paper else _pct(row["none"]))
+            cells = [f"{_pct(row[m])} (paper {_paper(paper[m])})" if m in paper else _pct(row[m]) for m in MODALITIES]
+            cells.append(f"{_pct(row['none'])} (paper {_paper(paper['none'])})" if paper else _pct(row["none"]))
             lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(cells) + " |")
         lines.append("")
 
@@ -745,7 +789,7 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                   "|---|---|---|---|"]
         for model, row in results["ablation"].items():
             lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
-                f"{_pct(row[t])} ({PAPER['ablation'].get(model, {}).get(t, 'not in the paper')})"
+                f"{_pct(row[t])} ({_paper(PAPER['ablation'].get(model, {}).get(t, 'not in the paper'))})"
                 for t in ("ssmc", "usmc", "fine")) + " |")
         lines.append("")
         if "touchformer_soft" in results["ablation"]:
@@ -788,6 +832,10 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                 for model, curve in table.items():
                     lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
                         f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
+                if table is level["curves"] and level.get("seed_wins"):
+                    n = len(rob["seeds"])
+                    lines.append(f"| seeds where TouchFormer is above every other model (of {n}) | " + " | ".join(
+                        str(level["seed_wins"].get(p, "-")) for p in ps) + " |")
                 lines.append("")
         lines += [f"Paper: {PAPER['robustness']}.", ""]
     else:
@@ -886,7 +934,7 @@ EVAL_DEVIATIONS: dict[str, str] = {
                    "object can fall on both sides, which favours SSMC over USMC."),
     "usmc_seeds": "USMC folds of the first seed only (k folds, as the paper); SSMC and fine-grained over all seeds.",
     "missing_modality": "modality removed at test time from models trained with all four (the paper does not say).",
-    "robustness_noise": ("noise std in units of the per-channel training feature std, at std 1 and 3; the paper "
+    "robustness_noise": ("noise std in units of the per-channel training feature std, at std {stds}; the paper "
                          "runs several intensities without giving them. SSMC split of every seed; the reference "
                          "classifier is not included."),
     "fire_fine_tune": "fine-tuning keeps the clean model's feature normalisation and class list.",
@@ -934,6 +982,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     data = load_dataset(data_dir)
     records = data.records
     provenance = {"command": command if command is not None else " ".join(sys.argv), "git_commit": _git_commit(),
+                  "git_dirty": _git_dirty(),
                   "data_dir": str(data_dir), "data_manifest_sha256": data.manifest_sha256, "data_env": data.env,
                   "n_strokes": len(records), "n_categories": len({r.category for r in records}),
                   "n_instances": len({r.instance for r in records}), "seeds": list(cfg.seeds), "quick": quick,
@@ -946,6 +995,9 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     results: dict[str, Any] = {"paper": PAPER, "provenance": provenance,
                                "config": json.loads(json.dumps(dataclasses.asdict(cfg), default=str)),
                                "deviations": {**DEVIATIONS, **EVAL_DEVIATIONS}}
+    stds = [f"{s:g}" for s in cfg.corruption_stds]
+    results["deviations"]["robustness_noise"] = results["deviations"]["robustness_noise"].format(
+        stds=" and ".join([", ".join(stds[:-1]), stds[-1]] if len(stds) > 1 else stds))
 
     ablation = list(cfg.ablation_models) if cfg.ablation else []
     jobs = []
@@ -1019,10 +1071,16 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
 
     if cfg.tsne and ("ssmc", "touchformer") in per and ("ssmc", "touchformer_mag") in per:
         panels = []
+        category_of = {r.instance: r.category for r in ctx.data.records}
+        categories = sorted(set(category_of.values()))
         for task in ("ssmc", "fine"):
             for model, title in (("touchformer_mag", "without CER"), ("touchformer", "with CER")):
                 run = per[(task, model)][0]
-                panels.append((f"{TASK_LABEL[task]}: {title}", run["_embedding"], run["_y_true"]))
+                colour = run["_y_true"]
+                if task == "fine":  # 42 instances: coloured by their category, 7 colours a reader can tell apart
+                    colour = np.array([categories.index(category_of[run["_names"][i]]) for i in run["_y_true"]])
+                panels.append((f"{TASK_LABEL[task]}: {title} (seed {run['seed']}"
+                               + (", coloured by category)" if task == "fine" else ")"), run["_embedding"], colour))
         _plot_tsne(out_dir / "tsne.png", panels, cfg.seeds[0])
         figures.append("tsne.png")
 
@@ -1034,11 +1092,13 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
 
     if rob_jobs:
         accuracy: dict[tuple[str, float, float | None], list[float]] = {}
+        checkpoints: dict[tuple[str, float, float | None], list[str | None]] = {}
         for seed in cfg.seeds:
             for model, p, std in rob_jobs:
                 bar.set_postfix_str(f"robustness {model} p={p} std={std:g} seed{seed}")
                 run = _run(ctx, model, "ssmc", rob_splits[seed], f"seed{seed}", seed, corruption=p, corruption_std=std)
                 accuracy.setdefault((model, p, _noise_std(p, std)), []).append(run["accuracy"])
+                checkpoints.setdefault((model, p, _noise_std(p, std)), []).append(run.get("checkpoint"))
                 bar.update()
         levels = []
         for std in cfg.corruption_stds:
@@ -1048,7 +1108,9 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
             levels.append({"corruption_std": std,
                            "curves": {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()},
                            "curves_std": {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()},
-                           "per_seed": per_seed})
+                           "per_seed": per_seed, "seed_wins": _seed_wins(per_seed, "touchformer"),
+                           "checkpoints": {m: {repr(float(p)): checkpoints[(m, float(p), _noise_std(p, std))]
+                                               for p in cfg.corruption_ratios} for m in cfg.robustness_models}})
         results["robustness"] = {"seeds": list(cfg.seeds), "corruption_stds": list(cfg.corruption_stds),
                                  "levels": levels}
         _plot_robustness(out_dir / "robustness.png", levels)
@@ -1062,6 +1124,8 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         results["fire"] = _fire_experiment(ctx)
     results["failed_runs"] = _failed_runs(ctx.cache.values(), out_dir)
     results["figures"] = figures
+    commits = Counter(r.get("git_commit") or "unknown" for r in ctx.cache.values() if r["model"] != "reference")
+    provenance["run_commits"] = dict(commits.most_common())
     results["seconds"] = time.perf_counter() - t_start
     (out_dir / "results.json").write_text(json.dumps(results, indent=2, default=_json_default), encoding="utf-8")
     _write_report(out_dir / "REPORT.md", results)

@@ -98,10 +98,26 @@ def test_quick_evaluation_writes_report(tmp_path):
         # p = 0 is Table 1's SSMC run at every intensity (one seed in the quick run, so std 0)
         assert level["curves"]["touchformer"]["0.0"] == pytest.approx(
             saved["table1"]["ssmc"]["touchformer"]["accuracy"]["mean"])
-        assert level["curves_std"]["touchformer"] == {"0.0": 0.0, "0.5": 0.0, "1.0": 0.0}
+        # one seed: no sample std (it used to print a misleading "± 0.00")
+        assert all(v != v for v in level["curves_std"]["touchformer"].values())
+        assert set(level["seed_wins"]) == {"0.0", "0.5", "1.0"} and set(level["seed_wins"].values()) <= {0, 1}
+        assert all(Path(c[0]).is_dir() for c in level["checkpoints"]["touchformer"].values())
+    assert "(n=1)" in (out / "REPORT.md").read_text()  # one SSMC seed in the quick run: no std to print
+    # each run's checkpoint names the data it trained on, and the report counts the commits that trained them
+    fire_sha = saved["provenance"]["fire_manifest_sha256"]
+    for seed_dir in (out / "runs" / "fire").iterdir():
+        for run_dir in seed_dir.iterdir():
+            meta = load_checkpoint(run_dir / "checkpoint").meta
+            expected = saved["provenance"]["data_manifest_sha256"] if run_dir.name.startswith("clean_") else fire_sha
+            assert meta["data_manifest_sha256"] == expected, run_dir
+    commits = saved["provenance"]["run_commits"]
+    assert commits and all(n > 0 for n in commits.values()) and "runs by the commit that trained them" in (
+        out / "REPORT.md").read_text()
+    assert saved["provenance"]["git_dirty"] in (True, False, None)
+    assert "std 1 and 3;" in saved["deviations"]["robustness_noise"]
     single = saved["single_sensor"]["touchformer_soft"]
     assert set(single) == {"sound", "normal", "friction", "accel", "all"}
-    assert single["all"]["accuracy"] == saved["table1"]["ssmc"]["touchformer_soft"]["accuracy"]
+    np.testing.assert_equal(single["all"]["accuracy"], saved["table1"]["ssmc"]["touchformer_soft"]["accuracy"])
     for i, sensor in enumerate(("sound", "normal", "friction", "accel")):
         run = single[sensor]["runs"][0]
         assert load_checkpoint(run["checkpoint"]).feature_config.modalities == (sensor,)
@@ -127,7 +143,7 @@ def test_quick_evaluation_writes_report(tmp_path):
     for task in probes:
         for model in ("touchformer", "touchformer_soft", "lstm", "mtcnn"):
             assert set(probes[task][model]) == {"intact", "time_shuffled", "time_reversed", "desync", "swap"}
-            assert probes[task][model]["intact"] == saved["table1"][task][model]["accuracy"]
+            np.testing.assert_equal(probes[task][model]["intact"], saved["table1"][task][model]["accuracy"])
             assert all(0.0 <= st["mean"] <= 1.0 for st in probes[task][model].values())
         assert set(probes[task]["reference"]) == {"intact", "swap"}  # statistics have no frame order
     assert "## What the networks use" in report and "| sensors shifted apart | sensors from other strokes |" in report
@@ -160,18 +176,21 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
         assert (out / "REPORT.md").is_file()
     for task in ("ssmc", "usmc", "fine"):
         for model in ("touchformer", "lstm", "reference"):
-            assert (runs[1]["table1"][task][model]["accuracy"] == runs[2]["table1"][task][model]["accuracy"]), \
-                (task, model)
-    assert runs[1]["robustness"]["levels"] == runs[2]["robustness"]["levels"]
+            np.testing.assert_equal(runs[1]["table1"][task][model]["accuracy"],  # NaN std (one run) equals NaN
+                                    runs[2]["table1"][task][model]["accuracy"], err_msg=f"{task} {model}")
+    for one, two in zip(runs[1]["robustness"]["levels"], runs[2]["robustness"]["levels"]):
+        np.testing.assert_equal({k: v for k, v in one.items() if k != "checkpoints"},  # run folders differ
+                                {k: v for k, v in two.items() if k != "checkpoints"})
     single = {w: runs[w]["single_sensor"]["lstm"] for w in (1, 2)}
     for sensor in ("sound", "normal", "friction", "accel", "all"):
-        assert single[1][sensor]["accuracy"] == single[2][sensor]["accuracy"]
+        np.testing.assert_equal(single[1][sensor]["accuracy"], single[2][sensor]["accuracy"])
     assert sum(name.startswith("single_sensor/lstm/") for name in pretrained) == 4
     # the workers trained the fire runs too, fine-tuning after the clean run it starts from
     fire_runs = [name for name in pretrained if name.startswith("fire/")]
     assert set(fire_runs) == {"fire/seed0/clean_lstm", "fire/seed0/scratch_lstm", "fire/seed0/finetuned_lstm"}
     assert fire_runs[-1] == "fire/seed0/finetuned_lstm"
-    assert runs[1]["fire"]["rows"] == runs[2]["fire"]["rows"] and len(runs[2]["fire"]["rows"]) == 3 + 2
+    np.testing.assert_equal(runs[1]["fire"]["rows"], runs[2]["fire"]["rows"])
+    assert len(runs[2]["fire"]["rows"]) == 3 + 2
     report = (tmp_path / "w2" / "REPORT.md").read_text()
     assert "Not run in this report (`--no-ablation`)" in report
     no_fire = dataclasses.replace(config, models=("reference",), robustness_models=())
@@ -242,7 +261,7 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
         assert [r["seed"] for r in row["runs"]] == [0, 1]
         accuracies = [r["accuracy"] for r in row["runs"]]
         assert row["accuracy"]["n"] == 2 and row["accuracy"]["mean"] == pytest.approx(np.mean(accuracies))
-        assert row["accuracy"]["std"] == pytest.approx(np.std(accuracies))
+        assert row["accuracy"]["std"] == pytest.approx(np.std(accuracies, ddof=1))  # sample std
     for seed in (0, 1):  # each seed trains its own clean model and fine-tunes from that one
         for kind in ("clean", "finetuned", "scratch"):
             run_dir = out / "runs" / "fire" / f"seed{seed}" / f"{kind}_lstm"
@@ -258,7 +277,7 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
             accuracies = level["per_seed"]["lstm"][p]
             assert len(accuracies) == 2
             assert level["curves"]["lstm"][p] == pytest.approx(np.mean(accuracies))
-            assert level["curves_std"]["lstm"][p] == pytest.approx(np.std(accuracies))
+            assert level["curves_std"]["lstm"][p] == pytest.approx(np.std(accuracies, ddof=1))
             for seed in (0, 1):  # p = 0 is one run for every intensity; each intensity has its own noisy runs
                 name = f"seed{seed}_p{p}" + ("" if p == "0.0" else f"_std{std:g}")
                 run_dir = out / "runs" / "ssmc" / "lstm" / name
