@@ -135,13 +135,17 @@ def load_dataset(directory: str | os.PathLike, verify: bool = True) -> Dataset:
         The :class:`Dataset`.
 
     Raises:
-        DatasetError: missing or corrupt manifest, missing shard, sha256 or stroke-count mismatch, or a
-            shard that is not a readable stroke file. The message names the file.
+        DatasetError: missing or corrupt manifest, a recording that has not finished, missing shard, sha256 or
+            stroke-count mismatch, or a shard that is not a readable stroke file. The message names the file.
     """
     root = Path(directory)
     if not root.is_dir():
         raise DatasetError(root, "data set folder not found")
     manifest, digest = _read_manifest(root / MANIFEST_FILE)
+    if manifest.get("complete") is False:  # written by a recording that has not finished (older ones say nothing)
+        raise DatasetError(root / MANIFEST_FILE, f"the recording is not finished ({len(manifest['shards'])} of "
+                           f"{manifest.get('expected_shards', '?')} shards); run the same dataset command again "
+                           "to resume it")
     records: list[StrokeRecord] = []
     for shard in manifest["shards"]:
         path = root / shard["file"]

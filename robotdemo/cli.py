@@ -268,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     dataset.add_argument("--strokes-per-instance", type=_positive_int, default=30)
     dataset.add_argument("--objects-per-instance", type=int, default=None,
                          help="distinct objects per material instance (default: DatasetConfig's, 10)")
-    dataset.add_argument("--seed", type=int, default=0)
+    dataset.add_argument("--seed", type=_non_negative_int, default=0)
     dataset.add_argument("--workers", type=_positive_int, default=1)
     dataset.add_argument("--env", choices=["clean", "fire"], default="clean")
     dataset.add_argument("--categories", default=None, help="comma-separated subset, e.g. metal,wood")
@@ -295,7 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", required=True)
     train.add_argument("--epochs", type=int, default=50)
     train.add_argument("--batch-size", type=int, default=32)
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--seed", type=_non_negative_int, default=0)
     train.add_argument("--fold", type=int, default=0, help="usmc: which of the 5 folds to hold out")
     train.add_argument("--lr", type=float, default=None, help="learning rate (default 3e-3)")
     train.add_argument("--weight-decay", type=float, default=None, help="AdamW weight decay (default 0.01)")
@@ -388,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--n", type=_positive_int, default=None,
                        help="ik, trajectory: poses / plans (default 1000); inference: strokes (default 200); "
                             "emulation: strokes (default 6)")
-    bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--seed", type=_non_negative_int, default=0)
     bench.add_argument("--stroke-s", type=float, default=1.0,
                        help="inference: length of the synthetic stroke, s (the data sets' median is about 2.2)")
     bench.add_argument("--clamped", action="store_true",

@@ -9,7 +9,9 @@ skips shards already written (each is written atomically, then recorded in the m
 Layout (read by :func:`perception.dataset.load_dataset`)::
 
     DIR/manifest.json      {"format": "robotdemo-dataset", "version": 1, "env", "seed", "config",
-                            "shards": [{"file", "n_strokes", "sha256", "instance", "failed_strokes"}]}
+                            "complete", "expected_shards",
+                            "shards": [{"file", "n_strokes", "sha256", "instance", "failed_strokes",
+                                        "failed_attempts": {reason: count}}]}
     DIR/shards/shard-00007-oak.npz   (perception.recording_io stroke file)
 """
 
@@ -19,7 +21,9 @@ import hashlib
 import json
 import math
 import multiprocessing as mp
+import re
 import time
+from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterator
@@ -28,6 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from controllers.stroke import StrokeConfig
+from controllers.trajectory import TrajectoryError
 from perception.atomic import atomic_write_json
 from perception.contact_trace import ObjectInfo
 from perception.materials import Material, MaterialCatalogue, contact_dynamics, default_catalogue, sample_material
@@ -35,7 +40,7 @@ from perception.recording_io import write_strokes
 from perception.streams import StrokeRecord
 from perception.tactile import ENVIRONMENTS, emulate_stroke
 from robotdemo.errors import RobotDemoError
-from robotdemo.motion import ArmMotion, UnreachableError
+from robotdemo.motion import ArmMotion
 from robotdemo.robot import GripperPosture
 from robotdemo.scene import SHAPES, ObjectSpec, Scene, SceneConfig, body_shape, draw_object_size
 from robotdemo.sim import SimConfig
@@ -116,8 +121,11 @@ def _stroke_planner(config: DatasetConfig) -> SortingConfig:
                          stroke_length_m=config.length_range_m, stroke_max_slide_s=config.max_slide_s)
 
 
-def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalogue | None = None) -> list[StrokeRecord]:
-    """All strokes of one instance (deterministic in ``config.seed`` and ``job.index``)."""
+def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalogue | None = None,
+                 failures: Counter | None = None) -> list[StrokeRecord]:
+    """All strokes of one instance (deterministic in ``config.seed`` and ``job.index``); each failed attempt's
+    reason, its numbers replaced by ``#``, is counted in ``failures`` when given."""
+    failures = Counter() if failures is None else failures
     catalogue = catalogue or default_catalogue()
     material: Material = catalogue.instance(job.instance)
     seq = np.random.SeedSequence([config.seed, job.index])
@@ -166,20 +174,28 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
                 stroke_seed = int(rng.integers(2**31))
                 try:
                     move_pad_above(scene, motion, stroke)
-                except UnreachableError:
+                    execution = StrokeExecution(scene, motion, obj, stroke)
+                    while not execution.step():
+                        pass
+                except (RobotDemoError, TrajectoryError) as exc:  # unreachable, unplannable: draw another stroke
+                    failures[_reason_key(f"{type(exc).__name__}: {exc}")] += 1
                     continue
-                execution = StrokeExecution(scene, motion, obj, stroke)
-                while not execution.step():
-                    pass
                 result = execution.result()
                 moved = np.linalg.norm(scene.object_pose(obj)[0] - center_before)
                 if not result.success or moved > 0.005:
+                    failures[_reason_key(result.failure_reason if not result.success
+                                         else "the object moved more than 5 mm")] += 1
                     continue
                 meta = {"object_id": object_id, "object_kind": kind, "size_m": list(size), "env": config.env,
                         "stroke_seed": stroke_seed, "dataset_seed": config.seed, **params}
                 records.append(emulate_stroke(result.trace, info, env, np.random.default_rng(stroke_seed), meta=meta))
                 done += 1
     return records
+
+
+def _reason_key(reason: str) -> str:
+    """A failure reason with its numbers replaced by ``#``, so that reasons of one kind count together."""
+    return re.sub(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?", "#", reason)[:200]
 
 
 def _sha256(path: Path) -> str:
@@ -191,31 +207,41 @@ def _sha256(path: Path) -> str:
 
 
 def plan_jobs(config: DatasetConfig, catalogue: MaterialCatalogue) -> list[ShardJob]:
-    names = [name for name, m in catalogue.instances.items()
-             if (config.categories is None or m.category in config.categories)
-             and (config.instances is None or name in config.instances)]
-    if not names:
+    """One job per chosen instance. Its index is the instance's place in the whole catalogue, so a shard of a
+    subset recording is the same shard as in the full data set (same seed, same strokes)."""
+    known_categories = {m.category for m in catalogue.instances.values()}
+    unknown = [c for c in config.categories or () if c not in known_categories]
+    unknown += [i for i in config.instances or () if i not in catalogue.instances]
+    if unknown:
+        raise RobotDemoError(f"unknown categories or instances {unknown}; the catalogue has categories "
+                             f"{sorted(known_categories)}")
+    jobs = [ShardJob(index=i, instance=name, file=f"shards/shard-{i:05d}-{name}.npz")
+            for i, (name, m) in enumerate(catalogue.instances.items())
+            if (config.categories is None or m.category in config.categories)
+            and (config.instances is None or name in config.instances)]
+    if not jobs:
         raise RobotDemoError(f"no material instance matches categories={config.categories} instances={config.instances}")
-    return [ShardJob(index=i, instance=name, file=f"shards/shard-{i:05d}-{name}.npz") for i, name in enumerate(names)]
+    return jobs
 
 
-def _run_job(args: tuple[ShardJob, DatasetConfig, str]) -> tuple[ShardJob, int, float]:
+def _run_job(args: tuple[ShardJob, DatasetConfig, str]) -> tuple[ShardJob, int, float, dict[str, int]]:
     job, config, out_dir = args
     t0 = time.perf_counter()
-    records = record_shard(job, config)
+    failures: Counter = Counter()
+    records = record_shard(job, config, failures=failures)
     write_strokes(Path(out_dir) / job.file, records)
-    return job, len(records), time.perf_counter() - t0
+    return job, len(records), time.perf_counter() - t0, dict(failures.most_common())
 
 
 def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 1, progress: bool = True) -> dict:
     """Record (or resume recording) the data set into ``out_dir``. Returns the manifest."""
     out = Path(out_dir)
-    (out / "shards").mkdir(parents=True, exist_ok=True)
     catalogue = default_catalogue()
-    jobs = plan_jobs(config, catalogue)
+    jobs = plan_jobs(config, catalogue)  # before anything is written: a bad category leaves no folder behind
+    (out / "shards").mkdir(parents=True, exist_ok=True)
     manifest_path = out / "manifest.json"
     manifest = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "env": config.env, "seed": config.seed,
-                "config": asdict(config), "shards": []}
+                "config": asdict(config), "complete": False, "expected_shards": len(jobs), "shards": []}
     if manifest_path.is_file():
         try:
             previous = json.loads(manifest_path.read_text())
@@ -229,8 +255,9 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
         if previous.get("config") != json.loads(json.dumps(asdict(config))):
             raise RobotDemoError(f"{manifest_path}: written with another configuration; use another --out "
                                  "or the same options to resume")
-        manifest["shards"] = [s for s in previous.get("shards", []) if (out / s["file"]).is_file()
-                              and _sha256(out / s["file"]) == s["sha256"]]
+        planned = {job.file for job in jobs}  # a shard no current job writes (an older layout) is not kept
+        manifest["shards"] = [s for s in previous.get("shards", []) if s["file"] in planned
+                              and (out / s["file"]).is_file() and _sha256(out / s["file"]) == s["sha256"]]
     finished = {s["file"] for s in manifest["shards"]}
     todo = [job for job in jobs if job.file not in finished]
     total_strokes = config.strokes_per_instance * len(jobs)
@@ -240,10 +267,10 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
     pool = mp.get_context("spawn").Pool(workers) if workers > 1 and len(todo) > 1 else None
     try:
         results: Iterator = pool.imap_unordered(_run_job, args) if pool else map(_run_job, args)
-        for job, n, _seconds in results:
+        for job, n, _seconds, reasons in results:
             manifest["shards"].append({"file": job.file, "instance": job.instance, "n_strokes": n,
                                        "failed_strokes": config.strokes_per_instance - n,
-                                       "sha256": _sha256(out / job.file)})
+                                       "failed_attempts": reasons, "sha256": _sha256(out / job.file)})
             manifest["shards"].sort(key=lambda s: s["file"])
             atomic_write_json(manifest_path, manifest, indent=1, sort_keys=True)
             bar.update(n)
@@ -251,5 +278,6 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
         if pool is not None:
             pool.terminate()
         bar.close()
+    manifest["complete"] = True
     atomic_write_json(manifest_path, manifest, indent=1, sort_keys=True)
     return manifest

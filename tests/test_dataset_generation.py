@@ -1,10 +1,14 @@
 """The stroke data set: real strokes, shards written atomically, resumable, identical whatever the workers."""
 
+import json
+import shutil
 
 import numpy as np
 import pytest
 
+from perception.dataset import DatasetError, load_dataset
 from perception.recording_io import read_strokes
+from robotdemo import dataset
 from robotdemo.cli import main
 from robotdemo.dataset import DatasetConfig, generate_dataset
 from robotdemo.errors import RobotDemoError
@@ -49,6 +53,30 @@ def test_same_data_with_two_workers_and_resume_skips(one_worker, tmp_path):
     lost.unlink()
     redone = generate_dataset(tmp_path, DatasetConfig(**FAST), workers=1, progress=False)
     assert [s["sha256"] for s in redone["shards"]] == [s["sha256"] for s in manifest2["shards"]]
+    assert redone["complete"] and redone["expected_shards"] == 2
+    assert all(isinstance(s["failed_attempts"], dict) for s in redone["shards"])
+    # a manifest entry that no current job writes (an older layout's shard) is dropped, not loaded twice
+    manifest_path = tmp_path / "manifest.json"
+    listed = json.loads(manifest_path.read_text())
+    extra = dict(listed["shards"][0], file="shards/shard-99999-steel.npz")
+    shutil.copy(tmp_path / listed["shards"][0]["file"], tmp_path / extra["file"])
+    listed["shards"].append(extra)
+    manifest_path.write_text(json.dumps(listed))
+    assert len(load_dataset(tmp_path).records) == 6  # what the old code kept and loaded: a shard twice
+    cleaned = generate_dataset(tmp_path, DatasetConfig(**FAST), workers=1, progress=False)
+    assert [s["file"] for s in cleaned["shards"]] == [s["file"] for s in redone["shards"]]
+    assert len(load_dataset(tmp_path).records) == 4
+
+
+def test_an_unfinished_recording_does_not_load_as_a_data_set(one_worker, tmp_path):
+    out, _ = one_worker
+    shutil.copytree(out, tmp_path / "part")
+    manifest = json.loads((tmp_path / "part" / "manifest.json").read_text())
+    manifest["complete"] = False  # as the manifest reads while a recording runs (or after it was killed)
+    manifest["shards"] = manifest["shards"][:1]
+    (tmp_path / "part" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DatasetError, match="not finished .1 of 2 shards"):
+        load_dataset(tmp_path / "part")
 
 
 def test_other_options_into_same_folder_refused(one_worker):
@@ -58,8 +86,23 @@ def test_other_options_into_same_folder_refused(one_worker):
 
 
 def test_cli_unknown_instance_is_one_line(tmp_path, capsys):
-    assert main(["dataset", "--out", str(tmp_path), "--categories", "plutonium", "--quiet"]) == 2
-    assert "no material instance matches" in capsys.readouterr().err
+    assert main(["dataset", "--out", str(tmp_path / "x"), "--categories", "plutonium", "--quiet"]) == 2
+    assert "unknown categories or instances ['plutonium']" in capsys.readouterr().err
+    # a misspelt name beside a good one is refused too (it used to record the metal shards only), before any
+    # folder is made
+    assert main(["dataset", "--out", str(tmp_path / "y"), "--categories", "metal,wodo", "--quiet"]) == 2
+    assert "['wodo']" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    with pytest.raises(SystemExit):
+        main(["dataset", "--out", str(tmp_path / "z"), "--seed", "-1"])
+    assert "argument --seed: expected a whole number >= 0, got '-1'" in capsys.readouterr().err
+
+
+def test_a_subset_records_the_shards_of_the_full_data_set():
+    catalogue = dataset.default_catalogue()
+    full = {job.instance: job for job in dataset.plan_jobs(DatasetConfig(), catalogue)}
+    wood = dataset.plan_jobs(DatasetConfig(categories=("wood",)), catalogue)
+    assert wood and all(job == full[job.instance] for job in wood)  # same index, so the same seed and strokes
 
 
 def test_bad_slide_time_refused(tmp_path, capsys):
