@@ -9,7 +9,7 @@ skips shards already written (each is written atomically, then recorded in the m
 Layout (read by :func:`perception.dataset.load_dataset`)::
 
     DIR/manifest.json      {"format": "robotdemo-dataset", "version": 1, "env", "seed", "config",
-                            "complete", "expected_shards",
+                            "recorder_sha256", "complete", "expected_shards",
                             "shards": [{"file", "n_strokes", "sha256", "instance", "failed_strokes",
                                         "failed_attempts": {reason: count}}]}
     DIR/shards/shard-00007-oak.npz   (perception.recording_io stroke file)
@@ -193,6 +193,24 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
     return records
 
 
+RECORDER_SOURCES: tuple[str, ...] = (
+    "controllers/*.py", "perception/contact_trace.py", "perception/materials.py", "perception/materials.toml",
+    "perception/tactile.py", "perception/streams.py", "perception/recording_io.py", "perception/sensors/*.py",
+    "robotdemo/dataset.py", "robotdemo/motion.py", "robotdemo/robot.py", "robotdemo/scene.py", "robotdemo/sim.py",
+    "robotdemo/sorting.py", "robotdemo/stroking.py", "urdf/*/*.urdf")
+"""The files whose content decides what a recording holds (paths from the project root)."""
+
+
+def recorder_fingerprint() -> str:
+    """sha256 over the recorder's source files (:data:`RECORDER_SOURCES`), names and bytes: a resume refuses a
+    folder recorded by other code, so that a changed sensor model or simulator never mixes with older shards."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted({f for pattern in RECORDER_SOURCES for f in root.glob(pattern) if f.is_file()}):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
 def _reason_key(reason: str) -> str:
     """A failure reason with its numbers replaced by ``#``, so that reasons of one kind count together."""
     return re.sub(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?", "#", reason)[:200]
@@ -241,7 +259,8 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
     (out / "shards").mkdir(parents=True, exist_ok=True)
     manifest_path = out / "manifest.json"
     manifest = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "env": config.env, "seed": config.seed,
-                "config": asdict(config), "complete": False, "expected_shards": len(jobs), "shards": []}
+                "config": asdict(config), "recorder_sha256": recorder_fingerprint(), "complete": False,
+                "expected_shards": len(jobs), "shards": []}
     if manifest_path.is_file():
         try:
             previous = json.loads(manifest_path.read_text())
@@ -255,6 +274,10 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
         if previous.get("config") != json.loads(json.dumps(asdict(config))):
             raise RobotDemoError(f"{manifest_path}: written with another configuration; use another --out "
                                  "or the same options to resume")
+        if previous.get("recorder_sha256") != manifest["recorder_sha256"]:
+            raise RobotDemoError(f"{manifest_path}: recorded by other code (the sensor models, simulator or "
+                                 "controllers differ, see RECORDER_SOURCES); its shards would not match new ones: "
+                                 "use another --out, or move the folder away to start over")
         planned = {job.file for job in jobs}  # a shard no current job writes (an older layout) is not kept
         manifest["shards"] = [s for s in previous.get("shards", []) if s["file"] in planned
                               and (out / s["file"]).is_file() and _sha256(out / s["file"]) == s["sha256"]]

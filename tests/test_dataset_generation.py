@@ -85,6 +85,15 @@ def test_other_options_into_same_folder_refused(one_worker):
         generate_dataset(out, DatasetConfig(**{**FAST, "seed": 4}), workers=1, progress=False)
 
 
+def test_a_folder_recorded_by_other_code_is_not_resumed(one_worker, tmp_path, monkeypatch):
+    out, manifest = one_worker
+    assert manifest["recorder_sha256"] == dataset.recorder_fingerprint()
+    shutil.copytree(out, tmp_path / "old")
+    monkeypatch.setattr(dataset, "recorder_fingerprint", lambda: "0" * 64)  # as after a change to a sensor model
+    with pytest.raises(RobotDemoError, match="recorded by other code"):
+        generate_dataset(tmp_path / "old", DatasetConfig(**FAST), workers=1, progress=False)
+
+
 def test_cli_unknown_instance_is_one_line(tmp_path, capsys):
     assert main(["dataset", "--out", str(tmp_path / "x"), "--categories", "plutonium", "--quiet"]) == 2
     assert "unknown categories or instances ['plutonium']" in capsys.readouterr().err
