@@ -831,7 +831,7 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                 lines += [f"| {title} | " + " | ".join(f"p={p}" for p in ps) + " |", "|---|" + "---|" * len(ps)]
                 for model, curve in table.items():
                     lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
-                        f"{100 * curve[p]:.1f}" if p in curve else "-" for p in ps) + " |")
+                        f"{100 * curve[p]:.1f}" if p in curve and curve[p] == curve[p] else "-" for p in ps) + " |")
                 if table is level["curves"] and level.get("seed_wins"):
                     n = len(rob["seeds"])
                     lines.append(f"| seeds where TouchFormer is above every other model (of {n}) | " + " | ".join(

@@ -18,6 +18,7 @@ Layout (read by :func:`perception.dataset.load_dataset`)::
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import json
 import math
 import multiprocessing as mp
@@ -39,7 +40,8 @@ from perception.materials import Material, MaterialCatalogue, contact_dynamics, 
 from perception.recording_io import write_strokes
 from perception.streams import StrokeRecord
 from perception.tactile import ENVIRONMENTS, emulate_stroke
-from robotdemo.errors import RobotDemoError
+from robotdemo.assets import all_urdfs, urdf_root
+from robotdemo.errors import RobotDemoError, SimulationError
 from robotdemo.motion import ArmMotion
 from robotdemo.robot import GripperPosture
 from robotdemo.scene import SHAPES, ObjectSpec, Scene, SceneConfig, body_shape, draw_object_size
@@ -177,6 +179,8 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
                     execution = StrokeExecution(scene, motion, obj, stroke)
                     while not execution.step():
                         pass
+                except SimulationError:
+                    raise  # the scene itself broke: stop rather than stroke it again
                 except (RobotDemoError, TrajectoryError) as exc:  # unreachable, unplannable: draw another stroke
                     failures[_reason_key(f"{type(exc).__name__}: {exc}")] += 1
                     continue
@@ -197,8 +201,12 @@ RECORDER_SOURCES: tuple[str, ...] = (
     "controllers/*.py", "perception/contact_trace.py", "perception/materials.py", "perception/materials.toml",
     "perception/tactile.py", "perception/streams.py", "perception/recording_io.py", "perception/sensors/*.py",
     "robotdemo/dataset.py", "robotdemo/motion.py", "robotdemo/robot.py", "robotdemo/scene.py", "robotdemo/sim.py",
-    "robotdemo/sorting.py", "robotdemo/stroking.py", "urdf/*/*.urdf")
-"""The files whose content decides what a recording holds (paths from the project root)."""
+    "robotdemo/sorting.py", "robotdemo/stroking.py")
+"""The source files whose content decides what a recording holds (paths from the project root); the robot and
+scene descriptions (:func:`robotdemo.assets.all_urdfs`, in a checkout or a wheel) and the versions of the
+libraries that simulate and sample count too."""
+
+RECORDER_LIBRARIES: tuple[str, ...] = ("pybullet", "pin", "ruckig", "numpy", "scipy")
 
 
 def recorder_fingerprint() -> str:
@@ -208,6 +216,14 @@ def recorder_fingerprint() -> str:
     h = hashlib.sha256()
     for path in sorted({f for pattern in RECORDER_SOURCES for f in root.glob(pattern) if f.is_file()}):
         h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    for path in all_urdfs():
+        h.update(b"urdf/" + path.relative_to(urdf_root()).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    for name in RECORDER_LIBRARIES:
+        try:
+            version = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            version = "absent"
+        h.update(f"{name}=={version}\0".encode())
     return h.hexdigest()
 
 

@@ -36,8 +36,10 @@ STEP_MODES = ("fine", "free", "carry")
 
 
 URDF_FLAGS = p.URDF_USE_INERTIA_FROM_FILE | p.URDF_INITIALIZE_SAT_FEATURES
-"""How every body is loaded. With ``enableSAT`` the polyhedral features make convex contacts clip face against
-face: a pad sliding over a cylinder's top keeps a patch of 4 contact points. Without them GJK gives one new
+"""How every URDF body is loaded (the robot, the table, the zones and the cylinders; box objects are made with
+``createCollisionShape``, whose boxes collide by Bullet's box-box routine). With ``enableSAT`` the polyhedral
+features make convex contacts clip face against face: a pad sliding over a cylinder's top keeps a patch of 4
+contact points. Without them GJK gives one new
 point per step, and a 3 N press dragged at 30 mm/s over a cylinder read 0.8-7.3 N (5th-95th percentile)
 where a box reads a steady 3.5 N (scratch, session 26: ``/work/s26/cyl/contact3.py``, ``contact4.py``)."""
 
@@ -260,7 +262,14 @@ class Simulator:
     def _load_cylinder(self, radius_m: float, height_m: float, mass_kg: float, position_m: Sequence[float],
                        orientation_xyzw: Sequence[float], rgba: Sequence[float]) -> int:
         """A solid cylinder about its z axis, loaded from a one-link URDF so that it gets the polyhedral features
-        of separating-axis contact (``createCollisionShape`` cannot ask for them)."""
+        of separating-axis contact (``createCollisionShape`` cannot ask for them).
+
+        PyBullet makes it a 32-sided convex hull with a 1 mm collision margin. Against bodies with those features
+        (the pad, the fingers, the table: every URDF) the margin does not count; against the scene's box objects
+        (``createCollisionShape``) it does, so a cylinder meets a box object 1 mm early. Setting the margin to 0
+        changes the recorded cylinder strokes (their bytes, not their mean force: scratch, session 26,
+        ``/work/s26/margin/check.py``), so it waits for the next recording of the data sets."""
+        radius_m, height_m, mass_kg = float(radius_m), float(height_m), float(mass_kg)  # repr: plain numbers
         ixx = mass_kg * (3.0 * radius_m**2 + height_m**2) / 12.0
         izz = 0.5 * mass_kg * radius_m**2
         geometry = f'<geometry><cylinder radius="{radius_m!r}" length="{height_m!r}"/></geometry>'

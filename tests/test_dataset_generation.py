@@ -89,6 +89,13 @@ def test_a_folder_recorded_by_other_code_is_not_resumed(one_worker, tmp_path, mo
     out, manifest = one_worker
     assert manifest["recorder_sha256"] == dataset.recorder_fingerprint()
     shutil.copytree(out, tmp_path / "old")
+    urdf = tmp_path / "robot.urdf"
+    urdf.write_text("<robot/>")
+    monkeypatch.setattr(dataset, "all_urdfs", lambda: [urdf])  # a wheel's URDFs live outside the source tree
+    monkeypatch.setattr(dataset, "urdf_root", lambda: tmp_path)
+    before = dataset.recorder_fingerprint()
+    urdf.write_text('<robot name="edited"/>')
+    assert dataset.recorder_fingerprint() != before  # an edited robot description is other code
     monkeypatch.setattr(dataset, "recorder_fingerprint", lambda: "0" * 64)  # as after a change to a sensor model
     with pytest.raises(RobotDemoError, match="recorded by other code"):
         generate_dataset(tmp_path / "old", DatasetConfig(**FAST), workers=1, progress=False)

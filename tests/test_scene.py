@@ -209,3 +209,13 @@ def test_a_pad_dragged_over_a_top_face_feels_a_steady_force(tmp_path, shape):
                 forces.append(sum(c.normal_force_n for c in sim.contact_points(pad, top)))
     low, high = np.percentile(forces, [5, 95])
     assert low > 0.9 * np.median(forces) and high < 1.1 * np.median(forces), (low, high)
+
+
+def test_a_cylinder_sized_with_numpy_numbers_keeps_its_mass():
+    # its URDF is written as text: np.float64(0.2) used to read as mass 0, a static body
+    from robotdemo.sim import Simulator
+
+    with Simulator(SimConfig()) as sim:
+        body = sim.create_primitive("cylinder", np.array([0.05, 0.05, 0.08]), np.float64(0.2), np.zeros(3),
+                                    (0, 0, 0, 1), np.ones(4))
+        assert p.getDynamicsInfo(body, -1, physicsClientId=sim.client)[0] == pytest.approx(0.2)

@@ -89,6 +89,11 @@ def test_sensor_samples_of_a_press_step_do_not_ring_before_or_after_it():
     np.testing.assert_allclose(out[times >= 0.5 + 3 * 0.01], 4.0)  # settled after three periods
 
 
+def test_sensor_samples_refuse_an_empty_signal():
+    with pytest.raises(ValueError, match="at least one input sample"):
+        sensor_samples(np.zeros((0, 3)), 1000.0, 100.0, t0_s=0.0, duration_s=1.0)
+
+
 def test_sensor_samples_reject_aliases_and_pass_the_band():
     fs = 44_100.0
     t = np.arange(0.0, 2.0, 1.0 / fs)

@@ -76,10 +76,13 @@ def sensor_samples(x: np.ndarray, rate_in_hz: float, rate_out_hz: float, t0_s: f
 
     Returns:
         (n, ...) sensor samples, n = floor((duration - t0) * rate_out); sample n is the filter's output at
-        t0 + n / rate_out (the signal is held at its last value past its end).
+        t0 + n / rate_out. A sample time past the input's last sample gets the filter's output there (the
+        input's duration is expected to cover ``duration_s``).
     """
     if order < 1:
         raise ValueError(f"decimation order must be >= 1, got {order}")
+    if np.shape(x)[0] == 0:
+        raise ValueError("sensor_samples needs at least one input sample")
     n_out = max(int(np.floor((duration_s - t0_s) * rate_out_hz)), 1)
     x = np.asarray(x, dtype=float)
     rate = _filter_rate_hz(rate_in_hz, rate_out_hz)
