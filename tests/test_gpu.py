@@ -90,6 +90,7 @@ def test_bfloat16_forward_on_the_gpu_agrees_with_float32(toy):  # noqa: F811
     assert out.logits.dtype == torch.bfloat16 and bool(torch.isfinite(out.logits.float()).all())
     torch.testing.assert_close(out.alphas.float(), ref.alphas, atol=0.05, rtol=0.05)
     assert float(out.alphas[1, 0]) == 0.0  # the missing sound gets no weight in bfloat16 either
+    torch.testing.assert_close(out.logits.float(), ref.logits, atol=0.02, rtol=0.02)  # seen: within 0.0033
     assert (out.logits.float().argmax(dim=1) == ref.logits.argmax(dim=1)).float().mean() >= 0.75
 
 def test_a_run_begun_on_the_gpu_resumes_on_the_gpu_and_on_the_cpu(toy, tmp_path):  # noqa: F811
