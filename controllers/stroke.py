@@ -9,8 +9,8 @@ targets). Phases::
 * APPROACH: straight line (jerk-limited) from the initial tool position to the hover point, ``approach_height_m``
   above the expected contact point along the surface normal. Contact felt on the way starts PRESS at once.
 * PRESS: descend along the normal, fast until ``slow_zone_m`` above the expected surface and slowly below it (the
-  descent speed changes along jerk-limited ramps, Ruckig's velocity interface, braking early enough to enter the
-  slow zone at ``contact_speed_mps``); once
+  descent speed changes along jerk-limited ramps, Ruckig's velocity interface, braking as it nears the slow zone,
+  which it enters at up to one tick's worth above ``contact_speed_mps``); once
   the force exceeds ``contact_force_n`` an admittance law on the normal offset takes over (below) and the contact
   stiffness is estimated from (offset, force) pairs. PRESS ends when the force reaches the target.
 * SETTLE: admittance only, until the force stays within ``settle_tolerance`` of the target for ``settle_time_s``.
