@@ -27,6 +27,10 @@
    (:func:`clean_training_part`).
 
 Every run's checkpoint lives under ``out_dir/runs/``; a rerun with the same settings resumes or reuses them.
+What the report reads from a finished run (its test predictions and training summary) is also appended to the
+run store ``out_dir/outcomes.jsonl`` (:mod:`perception.run_store`), which is small enough to commit: a rerun
+takes every run it holds from it, without the run folders, so an evaluation longer than one sitting resumes on
+another machine from the committed store and the data sets recorded again.
 Writes ``out_dir/REPORT.md``, ``out_dir/results.json`` and PNG figures (confusion matrices, robustness curve,
 t-SNE of test embeddings with and without CER).
 """
@@ -49,15 +53,16 @@ import numpy as np
 from sklearn.metrics import confusion_matrix, recall_score
 from tqdm.auto import tqdm
 
-from perception.checkpoint import load_checkpoint
+from perception.checkpoint import WEIGHTS_FILE, load_checkpoint
 from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ssmc_split, usmc_folds,
                                 validation_split)
 from perception.features import feature_dims, keep_modalities
 from perception.probes import ALTERATIONS, alter, swap_summaries
 from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
+from perception.run_store import RunStore, decode_array, encode_array, indices_sha256, outcome_id
 from perception.streams import MODALITIES, MODALITY_SYMBOL, StrokeRecord
 from perception.train import (CHECKPOINT_DIR, DEVIATIONS, TEST_CORRUPTION_SEED_OFFSET, TrainConfig, TrainResult,
-                             featurize_records, predict, resolve_device, train)
+                             featurize_records, predict, resolve_device, run_identity, train)
 
 PAPER: dict[str, Any] = {
     "table1": {  # accuracy %, G-mean; LMTHM, 4 modalities
@@ -85,6 +90,9 @@ PAPER: dict[str, Any] = {
     "robustness": "figure only: TouchFormer's accuracy stays above the baselines' for p in 0.0 ... 1.0",
 }
 """The paper's figures (from /work/shared/reference/paper-facts.md), printed beside ours in REPORT.md."""
+
+OUTCOMES_FILE = "outcomes.jsonl"
+"""The run store in the report folder (:mod:`perception.run_store`): every network run's test predictions."""
 
 MODEL_LABEL = {"touchformer": "TouchFormer", "touchformer_mag": "fusion + MAG (no CER)",
                "touchformer_fusion": "fusion only", "touchformer_soft": "TouchFormer, MAG without threshold",
@@ -228,13 +236,26 @@ class _Context:
     provenance: dict[str, Any]
     cache: dict = field(default_factory=dict)
     fire: _FireData | None = None
+    store: RunStore | None = None
+    outcomes: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """The run store's outcomes by id (:mod:`perception.run_store`)."""
+    scored: set[str] = field(default_factory=set)
+    """Ids of the outcomes trained or scored by this evaluation (the rest came from the store)."""
+    used: set[str] = field(default_factory=set)
+    """Ids of the outcomes this evaluation's report reads."""
 
 
 @dataclass(frozen=True)
 class _TrainJob:
-    """One network run of an experiment cell, as :func:`_run` trains it: train on ``split[0]`` (validation carved
-    from it), test on ``split[1]``. ``source`` names the data set (``"clean"`` or ``"fire"``), so a forked
-    training worker finds the strokes in its copy of the context instead of receiving them pickled."""
+    """One run of an experiment cell, as :func:`_run` trains and scores it: train on ``split[0]`` (validation
+    carved from it), test on ``split[1]``. ``source`` names the data set (``"clean"`` or ``"fire"``), so a forked
+    training worker finds the strokes in its copy of the context instead of receiving them pickled.
+
+    How the run is scored is part of the job, so that a training worker scores it as the report will read it:
+    ``drops`` (each modality removed in turn at test time), ``probes`` (the test strokes altered by each of
+    :data:`perception.probes.ALTERATIONS`), ``embedding`` (keep the test embeddings, for the t-SNE figure),
+    ``score_on`` (also predict the test part of this seed's split of that data set: the clean -> fire zero-shot
+    score) and ``parent`` (the run whose checkpoint this one fine-tunes from)."""
 
     model: str
     task: str
@@ -247,10 +268,20 @@ class _TrainJob:
     run_name: str | None = None
     class_names: tuple[str, ...] | None = None
     train_changes: tuple[tuple[str, Any], ...] = ()
+    drops: tuple[str, ...] = ()
+    probes: bool = False
+    embedding: bool = False
+    score_on: str | None = None
+    parent: _TrainJob | None = None
 
     def run_dir(self, ctx: _Context) -> Path:
         return _run_dir(ctx, self.model, self.task, self.split_name, self.corruption, self.run_name,
                         self.corruption_std)
+
+    def cache_key(self) -> tuple[Any, ...]:
+        """Which cell of the experiments this run is (a p = 0 robustness run is its Table-1 run)."""
+        return (self.model, self.task, self.split_name, self.seed, self.corruption,
+                _noise_std(self.corruption, self.corruption_std), self.run_name)
 
 
 def _noise_std(corruption: float, corruption_std: float) -> float | None:
@@ -306,74 +337,153 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     return res, cfg, val
 
 
-def _run(ctx: _Context, model: str, task: str, split: tuple[np.ndarray, np.ndarray], split_name: str, seed: int,
-         corruption: float = 0.0, records=None, features=None, summaries=None, class_names=None,
-         run_name: str | None = None, train_changes: Mapping[str, Any] | None = None,
-         drops: Sequence[str] = (), corruption_std: float = 1.0, probes: bool = False) -> dict[str, Any]:
-    """Train ``model`` on ``split[0]`` (validation carved from it) and test on ``split[1]``, both corrupted
-    with ratio ``corruption`` and noise std ``corruption_std`` (:func:`perception.train.corrupt_batch`); with
-    each modality of ``drops`` removed in turn and, with ``probes``, on the test strokes altered by each of
-    :data:`perception.probes.ALTERATIONS` (the reference classifier, which reads stream statistics rather than
-    frames, by ``swap`` only)."""
-    std = _noise_std(corruption, corruption_std)
-    key = (model, task, split_name, seed, corruption, std, run_name)
+def _job_names(ctx: _Context, job: _TrainJob) -> tuple[str, ...]:
+    records, _, _ = _source(ctx, job.source)
+    return _class_names(records, job.task) if job.class_names is None else tuple(job.class_names)
+
+
+def _job_config(ctx: _Context, job: _TrainJob) -> TrainConfig:
+    """The training config of ``job``, as :func:`_train_run` builds it."""
+    std = _noise_std(job.corruption, job.corruption_std)
+    noise = {"corruption_ratio": job.corruption, **({} if std is None else {"corruption_std": std})}
+    return _train_config(ctx, job.model, job.task, job.seed, **noise, **dict(job.train_changes))
+
+
+def _outcome_id(ctx: _Context, job: _TrainJob) -> str:
+    """The run store's name for ``job``'s outcome: its training config and model config
+    (:func:`perception.train.run_identity`; a fine-tuned run names its parent's outcome instead of the parent's
+    folder), class names, the data set's manifest hash, its training, validation and test strokes, and how it
+    is scored. Whatever changes one of these is another run."""
+    records, _, _ = _source(ctx, job.source)
+    tr, val = validation_split(records, job.split[0], job.task, job.seed, ctx.config.train.val_fraction)
+    names = _job_names(ctx, job)
+    identity = run_identity(_job_config(ctx, job), len(names))
+    if job.parent is not None:
+        identity["config"].pop("init_checkpoint", None)
+        identity["parent"] = _outcome_id(ctx, job.parent)
+    manifest = ctx.data.manifest_sha256 if job.source == "clean" else ctx.fire.data.manifest_sha256
+    score_on = None
+    if job.score_on is not None:
+        score_on = {"data": ctx.fire.data.manifest_sha256, "test": indices_sha256(_score_split(ctx, job)[1])}
+    return outcome_id({**identity, "class_names": list(names), "data": manifest, "train": indices_sha256(tr),
+                       "val": indices_sha256(val), "test": indices_sha256(job.split[1]), "drops": list(job.drops),
+                       "probes": job.probes, "embedding": job.embedding, "score_on": score_on})
+
+
+def _score_split(ctx: _Context, job: _TrainJob) -> tuple[np.ndarray, np.ndarray]:
+    """The split whose test part ``job.score_on`` names: this seed's SSMC split of that data set."""
+    assert job.score_on == "fire" and ctx.fire is not None, "only the fire data set is scored on besides the test part"
+    return ctx.fire.splits[job.seed]
+
+
+def _train_and_score(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
+    """Train ``job``'s run (or reuse its finished folder) and score it: the run store's outcome of it (training
+    summary, test predictions by test condition, optionally the test embeddings)."""
+    records, features, _ = _source(ctx, job.source)
+    names = _job_names(ctx, job)
+    y = np.array([names.index(l) for l in labels_of(records, job.task)])
+    train_idx, test_idx = job.split
+    parent = job.parent
+    if parent is not None and not (parent.run_dir(ctx) / CHECKPOINT_DIR / WEIGHTS_FILE).is_file():
+        # its outcome came from the store, its folder is gone: train it again (seeded, so the same weights on
+        # the same machine and library versions) to fine-tune from
+        parent_records, parent_features, _ = _source(ctx, parent.source)
+        _train_run(ctx, parent.model, parent.task, parent.split[0], parent.split_name, parent.seed,
+                   parent.corruption, parent_records, parent_features, _job_names(ctx, parent), parent.run_name,
+                   dict(parent.train_changes) or None, parent.corruption_std)
+    res, cfg, val = _train_run(ctx, job.model, job.task, train_idx, job.split_name, job.seed, job.corruption,
+                               records, features, names, job.run_name, dict(job.train_changes) or None,
+                               job.corruption_std)
+    device = resolve_device(cfg.device)
+    ckpt = load_checkpoint(res.checkpoint_dir, device=device)
+    dims = feature_dims(ckpt.feature_config)
+    noise = dict(corruption_ratio=job.corruption, corruption_std=job.corruption_std,
+                 seed=job.seed + TEST_CORRUPTION_SEED_OFFSET)
+    test_feats = [keep_modalities(features[i], ckpt.feature_config.modalities) for i in test_idx]
+    pred: dict[str, list[int]] = {}
+    outcome: dict[str, Any] = {"git_commit": ckpt.meta.get("git_commit")}  # the code that trained it
+    for drop in ("none",) + tuple(job.drops):
+        preds = predict(ckpt.model, test_feats, dims, stats=ckpt.norm_stats, device=device, **noise,
+                        drop=() if drop == "none" else (drop,))
+        pred[drop] = preds.pred.tolist()
+        if drop == "none":
+            outcome.update(_modality_weights(preds.alphas, test_feats))
+            if job.embedding:
+                outcome["embedding"] = encode_array(preds.embedding)
+    for kind in ALTERATIONS if job.probes else ():
+        altered = alter(test_feats, y[test_idx], kind, _probe_rng(job.seed, kind))
+        pred[f"probe:{kind}"] = predict(ckpt.model, altered.features, dims, stats=ckpt.norm_stats, device=device,
+                                        **noise).pred.tolist()
+    if job.score_on is not None:
+        _, score_features, _ = _source(ctx, job.score_on)
+        pred[f"score:{job.score_on}"] = predict(
+            ckpt.model, [keep_modalities(score_features[i], ckpt.feature_config.modalities)
+                         for i in _score_split(ctx, job)[1]], dims, stats=ckpt.norm_stats, device=device).pred.tolist()
+    outcome.update(pred=pred, best_epoch=res.best_epoch, best_val_accuracy=res.best_val_accuracy,
+                   checkpoint=str(res.checkpoint_dir), n_val=int(len(val)), epochs=len(res.history),
+                   train_accuracy_curve=[round(float(h["train_accuracy"]), 4) for h in res.history],
+                   val_accuracy_curve=[round(float(h["val_accuracy"]), 4) for h in res.history])
+    return outcome
+
+
+def _outcome(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
+    """``job``'s outcome: from the run store, or trained and scored now and added to it."""
+    run_id = _outcome_id(ctx, job)
+    outcome = ctx.outcomes.get(run_id)
+    if outcome is None:
+        outcome = _train_and_score(ctx, job)
+        if ctx.store is not None:
+            ctx.store.append(run_id, str(job.run_dir(ctx).relative_to(ctx.out_dir)), outcome)
+        ctx.outcomes[run_id] = outcome
+        ctx.scored.add(run_id)
+    ctx.used.add(run_id)
+    return outcome
+
+
+def _run(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
+    """Train ``job.model`` on ``job.split[0]`` (validation carved from it) and test on ``job.split[1]``, both
+    corrupted with ratio ``job.corruption`` and noise std ``job.corruption_std``
+    (:func:`perception.train.corrupt_batch`), as the job says (:class:`_TrainJob`: with each modality of
+    ``drops`` removed in turn, on the probes' altered strokes, ...). A network's outcome comes from the run
+    store when it holds it (:func:`_outcome`); the reference classifier, which reads stream statistics rather
+    than frames, is fitted here (its probes: ``swap`` only)."""
+    key = job.cache_key()
     if key in ctx.cache:
         return ctx.cache[key]
-    records = ctx.data.records if records is None else records
-    features = ctx.features if features is None else features
-    summaries = ctx.summaries if summaries is None else summaries
-    labels = labels_of(records, task)
-    names = _class_names(records, task) if class_names is None else tuple(class_names)
+    records, features, summaries = _source(ctx, job.source)
+    labels = labels_of(records, job.task)
+    names = _job_names(ctx, job)
     y = np.array([names.index(l) for l in labels])
-    train_idx, test_idx = split
-    result: dict[str, Any] = {"model": model, "task": task, "split": split_name, "seed": seed,
-                              "corruption_ratio": corruption, "corruption_std": 0.0 if std is None else std,
-                              "n_train": int(len(train_idx)),
-                              "n_test": int(len(test_idx))}
-    outputs = {}
-    if model == "reference":
-        clf = ReferenceClassifier(ReferenceConfig(label="instance" if task == "fine" else "category"))
+    train_idx, test_idx = job.split
+    std = _noise_std(job.corruption, job.corruption_std)
+    result: dict[str, Any] = {"model": job.model, "task": job.task, "split": job.split_name, "seed": job.seed,
+                              "corruption_ratio": job.corruption, "corruption_std": 0.0 if std is None else std,
+                              "n_train": int(len(train_idx)), "n_test": int(len(test_idx))}
+    outputs: dict[str, np.ndarray] = {}
+    emb = None
+    if job.model == "reference":
+        clf = ReferenceClassifier(ReferenceConfig(label="instance" if job.task == "fine" else "category"))
         clf.pipeline.fit(summaries[train_idx], [labels[i] for i in train_idx])
 
         def classify(x: np.ndarray) -> np.ndarray:  # class indices of the summaries x
             return np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
 
         block = summaries.shape[1] // len(MODALITIES)
-        for drop in ("none",) + tuple(drops):
+        for drop in ("none",) + tuple(job.drops):
             x = summaries[test_idx].copy()
             if drop != "none":
                 j = MODALITIES.index(drop)
                 x[:, j * block:(j + 1) * block] = 0.0  # exactly what a missing stream yields
             outputs[drop] = classify(x)
-        if probes:
-            swapped = alter([features[i] for i in test_idx], y[test_idx], "swap", _probe_rng(seed, "swap"))
+        if job.probes:
+            swapped = alter([features[i] for i in test_idx], y[test_idx], "swap", _probe_rng(job.seed, "swap"))
             outputs["probe:swap"] = classify(swap_summaries(summaries[test_idx], swapped.sources))
-        emb = None
     else:
-        res, cfg, val = _train_run(ctx, model, task, train_idx, split_name, seed, corruption, records, features,
-                                   names, run_name, train_changes, corruption_std)
-        ckpt = load_checkpoint(res.checkpoint_dir, device=resolve_device(cfg.device))
-        result["git_commit"] = ckpt.meta.get("git_commit")  # the code that trained it (a reused run: earlier)
-        dims = feature_dims(ckpt.feature_config)
-        test_feats = [keep_modalities(features[i], ckpt.feature_config.modalities) for i in test_idx]
-        for drop in ("none",) + tuple(drops):
-            preds = predict(ckpt.model, test_feats, dims, stats=ckpt.norm_stats, device=resolve_device(cfg.device),
-                            corruption_ratio=corruption, corruption_std=corruption_std,
-                            seed=seed + TEST_CORRUPTION_SEED_OFFSET, drop=() if drop == "none" else (drop,))
-            outputs[drop] = preds.pred
-            if drop == "none":
-                emb = preds.embedding
-                result.update(_modality_weights(preds.alphas, test_feats))
-        for kind in ALTERATIONS if probes else ():
-            altered = alter(test_feats, y[test_idx], kind, _probe_rng(seed, kind))
-            outputs[f"probe:{kind}"] = predict(
-                ckpt.model, altered.features, dims, stats=ckpt.norm_stats, device=resolve_device(cfg.device),
-                corruption_ratio=corruption, corruption_std=corruption_std,
-                seed=seed + TEST_CORRUPTION_SEED_OFFSET).pred
-        result.update(best_epoch=res.best_epoch, best_val_accuracy=res.best_val_accuracy,
-                      checkpoint=str(res.checkpoint_dir), n_val=int(len(val)), epochs=len(res.history),
-                      train_accuracy_curve=[round(float(h["train_accuracy"]), 4) for h in res.history],
-                      val_accuracy_curve=[round(float(h["val_accuracy"]), 4) for h in res.history])
+        outcome = _outcome(ctx, job)
+        result.update({k: v for k, v in outcome.items() if k not in ("pred", "embedding")})
+        outputs = {k: np.asarray(v, dtype=np.int64) for k, v in outcome["pred"].items()}
+        emb = decode_array(outcome["embedding"]) if "embedding" in outcome else None
+    result["_score_pred"] = outputs.pop(f"score:{job.score_on}", None)
     y_test = y[test_idx]
     if len(test_idx) == 0:  # a train-only run (clean model of the fire experiment)
         result.update(accuracy=float("nan"), g_mean=float("nan"), missing={})
@@ -405,14 +515,6 @@ def _source(ctx: _Context, name: str) -> tuple[Sequence, list, np.ndarray]:
     return ctx.fire.data.records, ctx.fire.features, ctx.fire.summaries
 
 
-def _run_job(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
-    """:func:`_run` for one :class:`_TrainJob`."""
-    records, features, summaries = _source(ctx, job.source)
-    return _run(ctx, job.model, job.task, job.split, job.split_name, job.seed, job.corruption, records=records,
-                features=features, summaries=summaries, class_names=job.class_names, run_name=job.run_name,
-                train_changes=dict(job.train_changes) or None, corruption_std=job.corruption_std)
-
-
 def _single_sensor_jobs(ctx: _Context) -> list[tuple[str, _TrainJob]]:
     """(sensor, run): one SSMC run per single-sensor model, seed and sensor, in which the model sees only that
     sensor (``FeatureConfig.modalities``), in training and testing."""
@@ -428,7 +530,7 @@ def _single_sensor_experiment(ctx: _Context, all_four: Mapping[str, Sequence[Map
     sensor alone, beside the same model's Table-1 SSMC runs with all four (``all_four``: model -> runs)."""
     runs: dict[str, dict[str, list]] = {}
     for sensor, job in _single_sensor_jobs(ctx):
-        runs.setdefault(job.model, {}).setdefault(sensor, []).append(_run_job(ctx, job))
+        runs.setdefault(job.model, {}).setdefault(sensor, []).append(_run(ctx, job))
     for model, rows in all_four.items():
         if model in runs:
             runs[model]["all"] = list(rows)
@@ -461,20 +563,18 @@ def _pool_init() -> None:
 def _pretrain_job(job: _TrainJob) -> str:
     ctx = _POOL_CONTEXT
     assert ctx is not None, "_pretrain_job runs only in a worker forked by _pretrain"
-    records, features, _ = _source(ctx, job.source)
-    names = job.class_names or _class_names(records, job.task)
-    _train_run(ctx, job.model, job.task, job.split[0], job.split_name, job.seed, job.corruption, records, features,
-               names, job.run_name, dict(job.train_changes) or None, job.corruption_std)
+    _outcome(ctx, job)
     return job.run_name or f"{job.task} {job.model} {job.split_name} p={job.corruption} std={job.corruption_std:g}"
 
 
 def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
-    """Train the runs of ``jobs`` in ``workers`` forked processes of one torch thread each (one job per run
-    folder, at its first place in ``jobs``). The experiments then run as without workers and find every run
-    finished in its folder (:func:`perception.train.train` reuses it), so the results are those of a
-    sequential evaluation. One torch thread per process, so ``workers`` processes share as many cores without
-    oversubscribing them. On a GPU the workers share it; if this process has used CUDA already, a forked worker
-    could not, so the runs are trained here one after another instead."""
+    """Train and score the runs of ``jobs`` that the run store lacks, in ``workers`` forked processes of one
+    torch thread each (one job per run folder, at its first place in ``jobs``); each worker adds its outcomes
+    to the store as it finishes them. The experiments then run as without workers and find every outcome in
+    the store, so the results are those of a sequential evaluation. One torch thread per process, so
+    ``workers`` processes share as many cores without oversubscribing them. On a GPU the workers share it; if
+    this process has used CUDA already, a forked worker could not, so the runs are trained here one after
+    another instead."""
     import multiprocessing as mp
 
     import torch
@@ -484,28 +584,33 @@ def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
     for job in jobs:
         if job.model != "reference":
             unique.setdefault(job.run_dir(ctx), job)
-    if not unique:
+    pending = [job for job in unique.values() if _outcome_id(ctx, job) not in ctx.outcomes]
+    if not pending:
         return
     in_process = resolve_device(ctx.config.train.device).type == "cuda" and torch.cuda.is_initialized()
     if in_process:  # a forked worker could not use the GPU
         tqdm.write(f"CUDA is already in use in this process, so forked workers could not use it: training the "
-                   f"{len(unique)} runs here, one after another", file=sys.stderr)
+                   f"{len(pending)} runs here, one after another", file=sys.stderr)
     _POOL_CONTEXT = ctx
-    bar = tqdm(total=len(unique), desc="train" if in_process else f"train ({workers} workers)",
+    bar = tqdm(total=len(pending), desc="train" if in_process else f"train ({workers} workers)",
                disable=not ctx.progress)
     try:
         with contextlib.ExitStack() as stack:
             if in_process:
-                names: Iterable[str] = map(_pretrain_job, unique.values())
+                names: Iterable[str] = map(_pretrain_job, pending)
             else:
                 pool = stack.enter_context(mp.get_context("fork").Pool(workers, initializer=_pool_init))
-                names = pool.imap_unordered(_pretrain_job, list(unique.values()))
+                names = pool.imap_unordered(_pretrain_job, pending)
             for name in names:
                 bar.set_postfix_str(name)
                 bar.update()
     finally:
         _POOL_CONTEXT = None
         bar.close()
+        if not in_process and ctx.store is not None:  # what the workers scored
+            stored = ctx.store.load()
+            ctx.scored.update(set(stored) - set(ctx.outcomes))
+            ctx.outcomes.update(stored)
 
 
 def _splits(ctx: _Context, task: str) -> list[tuple[str, int, tuple[np.ndarray, np.ndarray]]]:
@@ -749,6 +854,10 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
              *([f"- runs by the commit that trained them (a run is reused while its config, data and model config "
                 f"are unchanged): " + ", ".join(f"`{c[:10]}` {n}" for c, n in prov["run_commits"].items())]
                if prov.get("run_commits") else []),
+             *([f"- every network run's test predictions and training summary: `{prov['outcomes']['file']}` (the run "
+                f"store; this report read {prov['outcomes']['read']} runs, {prov['outcomes']['from_store']} of them "
+                f"from the store and {prov['outcomes']['scored_here']} trained or scored by this command)"]
+               if prov.get("outcomes") else []),
              f"- data: `{prov['data_dir']}` (env {prov['data_env']}, {prov['n_strokes']} strokes, "
              f"{prov['n_categories']} categories, {prov['n_instances']} instances), manifest sha256 "
              f"`{prov['data_manifest_sha256']}`",
@@ -1000,11 +1109,15 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         stds=" and ".join([", ".join(stds[:-1]), stds[-1]] if len(stds) > 1 else stds))
 
     ablation = list(cfg.ablation_models) if cfg.ablation else []
-    jobs = []
+    jobs = []  # Table 1 and the ablation, each scored as its sections read it
     for task in ("ssmc", "usmc", "fine"):
-        for split_name, seed, split in _splits(ctx, task):
+        for k, (split_name, seed, split) in enumerate(_splits(ctx, task)):
             for model in dict.fromkeys(list(cfg.models) + ablation):
-                jobs.append((model, task, split_name, seed, split))
+                jobs.append(_TrainJob(
+                    model, task, split_name, seed, split,
+                    drops=MODALITIES if (task == "usmc" and cfg.missing_modality and model in cfg.models) else (),
+                    probes=cfg.probes and model in cfg.models,
+                    embedding=cfg.tsne and k == 0 and task != "usmc" and model in ("touchformer", "touchformer_mag")))
     # (model, p, std); p = 0 once, shared by every intensity (Table 1's SSMC run)
     rob_jobs = list(dict.fromkeys((m, float(p), std if p > 0 else 1.0) for std in cfg.corruption_stds
                                   for p in cfg.corruption_ratios for m in cfg.robustness_models))
@@ -1012,24 +1125,24 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     if fire_dir is not None:
         ctx.fire = _load_fire(ctx, Path(fire_dir))
         provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=ctx.fire.data.manifest_sha256)
-    if workers > 1:  # targets first (Table 1 and its models' robustness), then the other variants, then fire
-        table = [_TrainJob(m, t, name, seed, split) for m, t, name, seed, split in jobs]
-        rob = [_TrainJob(m, "ssmc", f"seed{s}", s, rob_splits[s], p, std) for s in cfg.seeds for m, p, std in rob_jobs]
+    rob = [_TrainJob(m, "ssmc", f"seed{s}", s, rob_splits[s], p, std) for s in cfg.seeds for m, p, std in rob_jobs]
+    table_job = {job.cache_key(): job for job in jobs}
+    rob = [table_job.get(job.cache_key(), job) for job in rob]  # p = 0: the Table-1 run, scored as Table 1 reads it
+    ctx.store = RunStore(out_dir / OUTCOMES_FILE)
+    ctx.outcomes = ctx.store.load()
+    if workers > 1:  # Table 1 and the fire shift first, then the one-sensor runs and the robustness curve
         fire_runs = ([_fire_runs(ctx, m, s) for s in cfg.seeds for m in cfg.fire_models]
                      if ctx.fire is not None else [])
-        _pretrain(ctx, [j for j in table + rob if j.model in cfg.models]
-                  + [j for j in table + rob if j.model not in cfg.models]
-                  + [job for _, job in _single_sensor_jobs(ctx)]
+        _pretrain(ctx, [j for j in jobs if j.model in cfg.models] + [j for j in jobs if j.model not in cfg.models]
                   + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers)
-        _pretrain(ctx, [r["finetuned"] for r in fire_runs], workers)  # these start from the clean checkpoints
-    bar = tqdm(total=len(jobs) + len(rob_jobs) * len(cfg.seeds), desc="evaluate", disable=not progress)
+        _pretrain(ctx, [r["finetuned"] for r in fire_runs]  # these start from the clean checkpoints
+                  + [job for _, job in _single_sensor_jobs(ctx)] + rob, workers)
+    bar = tqdm(total=len(jobs) + len(rob), desc="evaluate", disable=not progress)
 
     per: dict[tuple[str, str], list] = {}
-    for model, task, split_name, seed, split in jobs:
-        bar.set_postfix_str(f"{task} {model} {split_name}")
-        drops = MODALITIES if (task == "usmc" and cfg.missing_modality and model in cfg.models) else ()
-        per.setdefault((task, model), []).append(_run(ctx, model, task, split, split_name, seed, drops=drops,
-                                                      probes=cfg.probes and model in cfg.models))
+    for job in jobs:
+        bar.set_postfix_str(f"{job.task} {job.model} {job.split_name}")
+        per.setdefault((job.task, job.model), []).append(_run(ctx, job))
         bar.update()
     results["table1"] = {t: {m: _summary(per[(t, m)]) for m in cfg.models} for t in ("ssmc", "usmc", "fine")}
     if cfg.missing_modality:
@@ -1093,13 +1206,13 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     if rob_jobs:
         accuracy: dict[tuple[str, float, float | None], list[float]] = {}
         checkpoints: dict[tuple[str, float, float | None], list[str | None]] = {}
-        for seed in cfg.seeds:
-            for model, p, std in rob_jobs:
-                bar.set_postfix_str(f"robustness {model} p={p} std={std:g} seed{seed}")
-                run = _run(ctx, model, "ssmc", rob_splits[seed], f"seed{seed}", seed, corruption=p, corruption_std=std)
-                accuracy.setdefault((model, p, _noise_std(p, std)), []).append(run["accuracy"])
-                checkpoints.setdefault((model, p, _noise_std(p, std)), []).append(run.get("checkpoint"))
-                bar.update()
+        for job in rob:
+            model, p, std = job.model, job.corruption, job.corruption_std
+            bar.set_postfix_str(f"robustness {model} p={p} std={std:g} {job.split_name}")
+            run = _run(ctx, job)
+            accuracy.setdefault((model, p, _noise_std(p, std)), []).append(run["accuracy"])
+            checkpoints.setdefault((model, p, _noise_std(p, std)), []).append(run.get("checkpoint"))
+            bar.update()
         levels = []
         for std in cfg.corruption_stds:
             per_seed = {m: {repr(float(p)): accuracy[(m, float(p), _noise_std(p, std))]
@@ -1126,6 +1239,8 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     results["figures"] = figures
     commits = Counter(r.get("git_commit") or "unknown" for r in ctx.cache.values() if r["model"] != "reference")
     provenance["run_commits"] = dict(commits.most_common())
+    provenance["outcomes"] = {"file": OUTCOMES_FILE, "read": len(ctx.used), "scored_here": len(ctx.used & ctx.scored),
+                              "from_store": len(ctx.used - ctx.scored)}
     results["seconds"] = time.perf_counter() - t_start
     (out_dir / "results.json").write_text(json.dumps(results, indent=2, default=_json_default), encoding="utf-8")
     _write_report(out_dir / "REPORT.md", results)
@@ -1183,13 +1298,13 @@ def _fire_runs(ctx: _Context, model: str, seed: int) -> dict[str, _TrainJob]:
     assert ctx.fire is not None
     cfg, fire, s = ctx.config, ctx.fire, seed
     clean = _TrainJob(model, "ssmc", "clean_train", s, (fire.clean_train[s], np.zeros(0, dtype=np.int64)),
-                      run_name=f"fire/seed{s}/clean_{model}", class_names=fire.class_names)
+                      run_name=f"fire/seed{s}/clean_{model}", class_names=fire.class_names, score_on="fire")
     on_fire = dict(source="fire", class_names=fire.class_names)
     tune = (("init_checkpoint", str(clean.run_dir(ctx) / CHECKPOINT_DIR)), ("epochs", cfg.fine_tune_epochs),
             ("lr", cfg.fine_tune_lr))
     return {"clean": clean,
             "finetuned": _TrainJob(model, "ssmc", "fire", s, fire.splits[s], run_name=f"fire/seed{s}/finetuned_{model}",
-                                   train_changes=tune, **on_fire),
+                                   train_changes=tune, parent=clean, **on_fire),
             "scratch": _TrainJob(model, "ssmc", "fire", s, fire.splits[s], run_name=f"fire/seed{s}/scratch_{model}",
                                  **on_fire)}
 
@@ -1203,14 +1318,10 @@ def _fire_experiment(ctx: _Context) -> dict[str, Any]:
     combustible = {r.category: r.combustible for r in ctx.data.records}
     rows: dict[str, dict[str, Any]] = {}
 
-    def score(seed: int, label: str, model: str, run_name: str, ckpt_dir: str | None,
-              pred: np.ndarray | None = None) -> None:
+    def score(seed: int, label: str, model: str, run_name: str, pred: np.ndarray) -> None:
+        """Score ``pred``, class indices of the seed's fire test strokes."""
         fire_test = fire.splits[seed][1]
         y = np.array([names.index(fire.data.records[i].category) for i in fire_test])
-        if pred is None:
-            ckpt = load_checkpoint(ckpt_dir, device=resolve_device(cfg.train.device))
-            pred = predict(ckpt.model, [fire.features[i] for i in fire_test], feature_dims(ckpt.feature_config),
-                           stats=ckpt.norm_stats, device=resolve_device(cfg.train.device)).pred
         comb_true = np.array([combustible[names[k]] for k in y])
         comb_pred = np.array([combustible[names[k]] for k in pred])
         row = rows.setdefault(label, {"label": label, "model": model, "runs": []})
@@ -1227,14 +1338,15 @@ def _fire_experiment(ctx: _Context) -> dict[str, Any]:
             label, runs = MODEL_LABEL.get(model, model), _fire_runs(ctx, model, seed)
             for kind, title in (("clean", "clean only (zero-shot on fire)"),
                                 ("finetuned", "clean + fine-tuned on fire"), ("scratch", "fire only")):
-                job = runs[kind]
-                score(seed, f"{label}, {title}", model, job.run_name, _run_job(ctx, job)["checkpoint"])
+                run = _run(ctx, runs[kind])
+                score(seed, f"{label}, {title}", model, runs[kind].run_name,
+                      run["_score_pred"] if kind == "clean" else run["_y_pred"])
         fire_test = fire.splits[seed][1]
-        score(seed, "reference, clean only (zero-shot on fire)", "reference", "", None,
+        score(seed, "reference, clean only (zero-shot on fire)", "reference", "",
               np.array([names.index(str(p)) for p in ref.predict(fire.summaries[fire_test])]))
-        ref_fire = _run_job(ctx, _TrainJob("reference", "ssmc", "fire", seed, fire.splits[seed],
+        ref_fire = _run(ctx, _TrainJob("reference", "ssmc", "fire", seed, fire.splits[seed],
                                            run_name=f"fire/seed{seed}/reference", source="fire", class_names=names))
-        score(seed, "reference, fire only", "reference", "", None, ref_fire["_y_pred"])
+        score(seed, "reference, fire only", "reference", "", ref_fire["_y_pred"])
     for row in rows.values():
         row.update({key: _mean_std([r[key] for r in row["runs"]])
                     for key in ("accuracy", "g_mean", "combustible_accuracy")})

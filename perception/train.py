@@ -554,6 +554,19 @@ def _trained_config(config: TrainConfig) -> dict[str, Any]:
     return {k: v for k, v in config.to_dict().items() if k not in PLACEMENT_FIELDS}
 
 
+def run_identity(config: TrainConfig, n_classes: int) -> dict[str, Any]:
+    """What a run of ``config`` is, apart from its strokes: the trained settings (:func:`_trained_config`) and
+    the model config it builds (the registry's defaults with the run's overrides, so a changed model default
+    tells two runs apart), as JSON data. The evaluation's run store names outcomes by it
+    (:mod:`perception.run_store`)."""
+    config_cls = MODEL_REGISTRY[config.model][0]
+    in_dims = tuple(feature_dims(config.feature_config)[m] for m in MODALITIES)
+    overrides = {k: _tuplify(v) for k, v in config.model_overrides}
+    model_config = config_cls(in_dims=in_dims, n_classes=n_classes, **overrides)
+    return {"config": _trained_config(config), "model_config": _model_config_json(config_cls,
+                                                                                   config_to_dict(model_config))}
+
+
 def _set_aside(out_dir: Path) -> Path:
     """Rename a run folder that cannot be resumed to ``<name>.stale-<n>`` (the first n free) and return it."""
     n = 1

@@ -328,3 +328,73 @@ def test_evaluate_cli_takes_the_noise_intensities(tmp_path, capsys):
         err = capsys.readouterr().err
         assert code == 2 and "corruption_stds must be one or more finite noise stds > 0" in err
         assert len(err.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
+
+
+def test_run_store_keeps_outcomes_and_names_a_bad_line(tmp_path):
+    from perception.run_store import RunStore, RunStoreError, decode_array, encode_array
+
+    store = RunStore(tmp_path / "outcomes.jsonl")
+    assert store.load() == {}
+    emb = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
+    store.append("a", "ssmc/lstm/seed0_p0.0", {"pred": {"none": [0, 1]}, "embedding": encode_array(emb)})
+    store.append("b", "ssmc/lstm/seed1_p0.0", {"pred": {"none": [1, 1]}})
+    store.append("a", "ssmc/lstm/seed0_p0.0", {"pred": {"none": [1, 0]}})  # a later line replaces an earlier one
+    loaded = store.load()
+    assert set(loaded) == {"a", "b"} and loaded["a"]["pred"]["none"] == [1, 0]
+    np.testing.assert_allclose(decode_array(encode_array(emb)), emb, atol=2e-3)  # float16
+    with open(store.path, "a") as handle:  # an evaluation killed mid-write leaves an unfinished last line
+        handle.write('{"id": "c", "run": "x", "outc')
+    assert set(store.load()) == {"a", "b"}
+    store.append("d", "y", {"pred": {}})  # the unfinished line is dropped, the new one complete
+    assert set(store.load()) == {"a", "b", "d"}
+    lines = store.path.read_text().splitlines()
+    store.path.write_text("\n".join(lines[:1] + ["not json"] + lines[1:]) + "\n")
+    with pytest.raises(RunStoreError, match=r"outcomes.jsonl: line 2 is not a run outcome"):
+        store.load()
+
+
+def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_path):
+    from perception.evaluate import OUTCOMES_FILE
+
+    torch.set_num_threads(1)
+    _write_toy_clean_and_fire(tmp_path)
+    config = dataclasses.replace(quick_config(), models=("touchformer", "lstm", "reference"),
+                                 ablation_models=("touchformer_mag", "touchformer"), robustness_models=("lstm",),
+                                 corruption_ratios=(0.0, 1.0), corruption_stds=(3.0,), fire_models=("lstm",),
+                                 single_sensor_models=("lstm",))
+    out = tmp_path / "report"
+
+    def run(cfg=config, workers=2):
+        results = evaluate(tmp_path / "clean", out, config=cfg, progress=False, workers=workers,
+                           fire_dir=tmp_path / "fire")
+        return {k: results[k] for k in ("table1", "missing_modality", "ablation", "probes", "robustness", "fire",
+                                        "single_sensor", "modality_weights")}, results["provenance"]["outcomes"]
+
+    first, outcomes = run()
+    assert outcomes["read"] == outcomes["scored_here"] > 0 and outcomes["from_store"] == 0
+    n_lines = len((out / OUTCOMES_FILE).read_text().splitlines())
+    assert n_lines == outcomes["read"]  # each run scored once, by the worker that trained it
+
+    def strip(results):  # run folders are named in the results; they may be gone
+        return json.loads(json.dumps(results, default=str).replace(str(out), "OUT"))
+
+    shutil.rmtree(out / "runs")
+    second, outcomes = run(workers=1)
+    assert not (out / "runs").exists()  # nothing trained: every outcome came from the store
+    assert outcomes == {"file": OUTCOMES_FILE, "read": n_lines, "scored_here": 0, "from_store": n_lines}
+    assert f"this report read {n_lines} runs, {n_lines} of them from the store" in (out / "REPORT.md").read_text()
+    np.testing.assert_equal(strip(second), strip(first))
+    assert (out / "tsne.png").stat().st_size > 0  # drawn from the stored embeddings
+
+    # a fine-tuned run missing from the store trains again, and so does the clean run it starts from
+    lines = (out / OUTCOMES_FILE).read_text().splitlines()
+    (out / OUTCOMES_FILE).write_text("\n".join(l for l in lines if "finetuned_lstm" not in l) + "\n")
+    third, outcomes = run()
+    assert outcomes["scored_here"] == 1
+    assert (out / "runs" / "fire" / "seed0" / "clean_lstm" / "checkpoint" / "model.safetensors").is_file()
+    np.testing.assert_equal(strip(third), strip(first))
+
+    # another setting is another run: nothing is reused
+    fewer = dataclasses.replace(config, train=dataclasses.replace(config.train, epochs=1))
+    _, outcomes = run(fewer)
+    assert outcomes["from_store"] == 0
