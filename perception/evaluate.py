@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import json
 import os
 import subprocess
@@ -352,7 +353,7 @@ def _job_config(ctx: _Context, job: _TrainJob) -> TrainConfig:
 def _outcome_id(ctx: _Context, job: _TrainJob) -> str:
     """The run store's name for ``job``'s outcome: its training config and model config
     (:func:`perception.train.run_identity`; a fine-tuned run names its parent's outcome instead of the parent's
-    folder), class names, the data set's manifest hash, its training, validation and test strokes, and how it
+    folder), class names, the data set's strokes (:func:`_strokes_id`), its training, validation and test strokes, and how it
     is scored. Whatever changes one of these is another run."""
     records, _, _ = _source(ctx, job.source)
     tr, val = validation_split(records, job.split[0], job.task, job.seed, ctx.config.train.val_fraction)
@@ -361,13 +362,24 @@ def _outcome_id(ctx: _Context, job: _TrainJob) -> str:
     if job.parent is not None:
         identity["config"].pop("init_checkpoint", None)
         identity["parent"] = _outcome_id(ctx, job.parent)
-    manifest = ctx.data.manifest_sha256 if job.source == "clean" else ctx.fire.data.manifest_sha256
+    strokes = _strokes_id(ctx.data if job.source == "clean" else ctx.fire.data)
     score_on = None
     if job.score_on is not None:
-        score_on = {"data": ctx.fire.data.manifest_sha256, "test": indices_sha256(_score_split(ctx, job)[1])}
-    return outcome_id({**identity, "class_names": list(names), "data": manifest, "train": indices_sha256(tr),
+        score_on = {"data": _strokes_id(ctx.fire.data), "test": indices_sha256(_score_split(ctx, job)[1])}
+    return outcome_id({**identity, "class_names": list(names), "data": strokes, "train": indices_sha256(tr),
                        "val": indices_sha256(val), "test": indices_sha256(job.split[1]), "drops": list(job.drops),
                        "probes": job.probes, "embedding": job.embedding, "score_on": score_on})
+
+
+def _strokes_id(data: Dataset) -> str:
+    """What a data set's strokes are, for the run store: sha256 over its shards' names and hashes. Not the
+    manifest's hash, which also covers the recorder's fingerprint (its source files, even a comment in them):
+    the same strokes recorded again by code changed elsewhere keep their stored runs."""
+    shards = data.manifest.get("shards")
+    if not shards or not all("sha256" in shard for shard in shards):
+        return data.manifest_sha256
+    text = json.dumps(sorted((str(shard["file"]), str(shard["sha256"])) for shard in shards))
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _score_split(ctx: _Context, job: _TrainJob) -> tuple[np.ndarray, np.ndarray]:
