@@ -9,8 +9,8 @@ targets). Phases::
 * APPROACH: straight line (jerk-limited) from the initial tool position to the hover point, ``approach_height_m``
   above the expected contact point along the surface normal. Contact felt on the way starts PRESS at once.
 * PRESS: descend along the normal, fast until ``slow_zone_m`` above the expected surface and slowly below it (the
-  descent speed changes along jerk-limited ramps, Ruckig's velocity interface, braking as it nears the slow zone,
-  which it enters at up to one tick's worth above ``contact_speed_mps``); once
+  descent speed changes along jerk-limited ramps, Ruckig's velocity interface, braking where the next tick at
+  full speed would leave too little room to slow down, so it enters the slow zone at ``contact_speed_mps``); once
   the force exceeds ``contact_force_n`` an admittance law on the normal offset takes over (below) and the contact
   stiffness is estimated from (offset, force) pairs. PRESS ends when the force reaches the target.
 * SETTLE: admittance only, until the force stays within ``settle_tolerance`` of the target for ``settle_time_s``.
@@ -331,10 +331,11 @@ class StrokeController:
                 self._enter(StrokePhase.SETTLE)
                 return
         else:
-            fast = self._offset_m > cfg.slow_zone_m + self._brake_m
-            target = cfg.press_speed_mps if fast else cfg.contact_speed_mps
-            ramp = plan_speed_ramp(self._descent_mps, self._descent_mps2, target, self._limits(cfg.press_speed_mps))
-            travel, self._descent_mps, self._descent_mps2 = ramp.at(dt_s)
+            limits = self._limits(cfg.press_speed_mps)
+            step = plan_speed_ramp(self._descent_mps, self._descent_mps2, cfg.press_speed_mps, limits).at(dt_s)
+            if self._offset_m - step[0] <= cfg.slow_zone_m + self._brake_m:  # would start braking late: brake now
+                step = plan_speed_ramp(self._descent_mps, self._descent_mps2, cfg.contact_speed_mps, limits).at(dt_s)
+            travel, self._descent_mps, self._descent_mps2 = step
             self._offset_m -= travel
         if self._offset_m < -cfg.max_press_depth_m:
             self._fail(f"target force not reached within max_press_depth_m {cfg.max_press_depth_m * 1e3:.1f} mm "

@@ -80,6 +80,20 @@ class GripperPosture:
 
 @dataclass(frozen=True)
 class RobotConfig:
+    """Servo gains and the fingers' and pad's contact properties.
+
+    Attributes:
+        position_gain, velocity_gain, gripper_position_gain: PyBullet position-control gains.
+        grasp_effort_nm: the gripper joints' torque limit while grasping, N m.
+        pad_friction, finger_friction: Coulomb friction coefficients.
+        finger_contact_stiffness_n_per_m: contact stiffness of the fingers and the pad (a silicone skin), N/m.
+        finger_contact_damping: contact damping of the finger links, N s/m.
+        pad_contact_damping: contact damping of the tactile pad, N s/m. PyBullet's contact force follows
+            F = k pen + (c + k dt) v per point, so at the fingers' 200 N s/m the pad's touch-down speed, not the
+            press, made most of the first contact's peak (8.8 N on a granite slab at a 0.66 N target, session 26).
+            A silicone skin damps far less; 10 N s/m is within an estimated 10-50 N s/m for the whole pad.
+    """
+
     position_gain: float = 0.3
     velocity_gain: float = 1.0
     gripper_position_gain: float = 0.05
@@ -88,6 +102,7 @@ class RobotConfig:
     finger_friction: float = 1.2
     finger_contact_stiffness_n_per_m: float = 3.0e4
     finger_contact_damping: float = 200.0
+    pad_contact_damping: float = 10.0
 
 
 class Robot:
@@ -126,7 +141,7 @@ class Robot:
                              contactDamping=config.finger_contact_damping)
         sim.set_dynamics(self.body, self.pad_link, lateralFriction=config.pad_friction,
                          contactStiffness=config.finger_contact_stiffness_n_per_m,
-                         contactDamping=config.finger_contact_damping)
+                         contactDamping=config.pad_contact_damping)
         self.arm_target = HOME_ARM_Q.copy()
         self.arm_target_velocity_radps: np.ndarray | None = None
         """The last arm command's velocity (rad/s), ``None`` where the command gave none (an IK-tracked pose)."""

@@ -266,9 +266,7 @@ class Simulator:
 
         PyBullet makes it a 32-sided convex hull with a 1 mm collision margin. Against bodies with those features
         (the pad, the fingers, the table: every URDF) the margin does not count; against the scene's box objects
-        (``createCollisionShape``) it does, so a cylinder meets a box object 1 mm early. Setting the margin to 0
-        changes the recorded cylinder strokes (their bytes, not their mean force: scratch, session 26,
-        ``/work/s26/margin/check.py``), so it waits for the next recording of the data sets."""
+        (``createCollisionShape``) it did, so a cylinder met a box object 1 mm early: the margin is set to 0."""
         radius_m, height_m, mass_kg = float(radius_m), float(height_m), float(mass_kg)  # repr: plain numbers
         ixx = mass_kg * (3.0 * radius_m**2 + height_m**2) / 12.0
         izz = 0.5 * mass_kg * radius_m**2
@@ -281,8 +279,10 @@ class Simulator:
         with tempfile.TemporaryDirectory(prefix="robotdemo-") as folder:
             path = Path(folder) / "cylinder.urdf"
             path.write_text(text)
-            return p.loadURDF(str(path), basePosition=list(position_m), baseOrientation=list(orientation_xyzw),
+            body = p.loadURDF(str(path), basePosition=list(position_m), baseOrientation=list(orientation_xyzw),
                               flags=URDF_FLAGS, physicsClientId=self.client)
+        p.changeDynamics(body, -1, collisionMargin=0.0, physicsClientId=self.client)
+        return body
 
     def set_dynamics(self, body: int, link: int = -1, **kwargs: float) -> None:
         """Forward to ``changeDynamics`` (keyword names as PyBullet's: lateralFriction, contactStiffness, ...)."""

@@ -109,7 +109,9 @@ class SortingConfig:
         stroke_side_margin_m: the pad's centre line stays this far from the face's sides (half the pad).
         stroke_hover_m: hover height above the stroke start before pressing.
         stroke_press_speed_mps, stroke_contact_speed_mps, stroke_slow_zone_m: the press (see
-            :class:`~controllers.stroke.StrokeConfig`).
+            :class:`~controllers.stroke.StrokeConfig`): 20 mm/s down to 1 mm above the surface, then 2 mm/s, so
+            that the pad touches down slowly (at 5 mm/s within 2 mm, before session 27, the first contact on a
+            stiff object peaked at several times the target).
         stroke_settle_tolerance: the slide starts once the force has stayed within this fraction of the target
             for the settle time. The robot needs a steady contact to classify, not an exact force. (It was
             widened from the controller's +-10 % while stiff blocks held the force in plateaus 15-25 % off the
@@ -193,8 +195,8 @@ class SortingConfig:
     stroke_side_margin_m: float = 0.012
     stroke_hover_m: float = 0.006
     stroke_press_speed_mps: float = 0.02
-    stroke_contact_speed_mps: float = 0.005
-    stroke_slow_zone_m: float = 0.002
+    stroke_contact_speed_mps: float = 0.002
+    stroke_slow_zone_m: float = 0.001
     stroke_settle_tolerance: float = 0.2
     min_partial_slide_m: float = 0.01
     grasp_clearance_m: float = 0.012

@@ -214,3 +214,43 @@ def test_sliding_friction_reads_the_kinetic_coefficient_and_none_without_a_slide
     assert sliding_friction(trace) == pytest.approx(mu, rel=0.03)
     pressed_only = synthetic_press_slide_trace(friction_coefficient=mu, slide_speed_mps=0.0)
     assert sliding_friction(pressed_only) is None
+
+
+def test_the_pad_touches_down_on_a_stiff_slab_without_a_spike():
+    """PyBullet's contact force is k pen + (c + k dt) v per point: with the fingers' damping (200 N s/m) on the
+    pad and the press meeting the surface at 5 mm/s, the first contact on granite peaked at 7.6 times a 0.66 N
+    target. The pad's own damping (10 N s/m) and a 2 mm/s touch-down keep the peak near the target."""
+    from perception.materials import contact_dynamics, default_catalogue, sample_material
+    from robotdemo.robot import RobotConfig
+    from robotdemo.scene import ObjectSpec
+    from robotdemo.sorting import SortingConfig
+
+    catalogue = default_catalogue()
+    sample = sample_material(catalogue.instance("granite"), np.random.default_rng(0))
+    size = (0.08, 0.06, 0.02)
+    spec = ObjectSpec(name="granite_slab", shape="box", size_m=size, xy_m=(-0.2, 0.05), yaw_rad=0.0,
+                      material=sample, dynamics=contact_dynamics(sample, size, "box"))
+    sorting, robot = SortingConfig(), RobotConfig()
+    peaks = {}
+    for label, damping, contact, zone in (
+            ("now", robot.pad_contact_damping, sorting.stroke_contact_speed_mps, sorting.stroke_slow_zone_m),
+            ("before", robot.finger_contact_damping, 0.005, 0.002)):
+        with Scene(SceneConfig(n_objects=0, seed=0), catalogue=catalogue, objects=[spec]) as scene:
+            scene.sim.set_dynamics(scene.robot.body, scene.robot.pad_link, contactDamping=damping,
+                                   contactStiffness=robot.finger_contact_stiffness_n_per_m)
+            obj = scene.objects[0]
+            motion = ArmMotion(scene.robot)
+            config = StrokeConfig(target_force_n=0.66, speed_mps=0.02, length_m=0.03, direction_rad=0.0,
+                                  start_point_m=tuple(top_surface_point(scene, obj, (-0.015, 0.0))),
+                                  approach_height_m=sorting.stroke_hover_m, press_speed_mps=sorting.stroke_press_speed_mps,
+                                  contact_speed_mps=contact, slow_zone_m=zone,
+                                  settle_tolerance=sorting.stroke_settle_tolerance)
+            move_pad_above(scene, motion, config)
+            result = run_stroke(scene, motion, obj, config)
+        assert result.success, result.failure_reason
+        pressing = np.array([phase in (StrokePhase.PRESS, StrokePhase.SETTLE) for phase in result.phase_log])
+        peaks[label] = result.force_log_n[pressing].max() / 0.66
+        sliding = np.array([phase is StrokePhase.SLIDE for phase in result.phase_log])
+        force = result.force_log_n[sliding][int(0.1 / motion.config.control_period_s):]
+        assert np.percentile(force, 5) > 0.95 * 0.66 and np.percentile(force, 95) < 1.05 * 0.66, label
+    assert peaks["now"] < 1.3 and peaks["before"] > 4.0, peaks
