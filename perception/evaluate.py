@@ -1101,6 +1101,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     data = load_dataset(data_dir)
+    _keep_manifest(data, out_dir, "clean")
     records = data.records
     provenance = {"command": command if command is not None else " ".join(sys.argv), "git_commit": _git_commit(),
                   "git_dirty": _git_dirty(),
@@ -1137,6 +1138,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     if fire_dir is not None:
         ctx.fire = _load_fire(ctx, Path(fire_dir))
         provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=ctx.fire.data.manifest_sha256)
+        _keep_manifest(ctx.fire.data, out_dir, "fire")
     rob = [_TrainJob(m, "ssmc", f"seed{s}", s, rob_splits[s], p, std) for s in cfg.seeds for m, p, std in rob_jobs]
     table_job = {job.cache_key(): job for job in jobs}
     rob = [table_job.get(job.cache_key(), job) for job in rob]  # p = 0: the Table-1 run, scored as Table 1 reads it
@@ -1257,6 +1259,15 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     (out_dir / "results.json").write_text(json.dumps(results, indent=2, default=_json_default), encoding="utf-8")
     _write_report(out_dir / "REPORT.md", results)
     return results
+
+
+def _keep_manifest(data: Dataset, out_dir: Path, name: str) -> None:
+    """Copy the manifest of a data set the evaluation reads to ``out_dir/data_manifests/<name>.json``: its
+    shards' hashes name the strokes of every stored run (:func:`_strokes_id`), so a data set recorded again
+    that no longer matches can be compared shard by shard."""
+    folder = out_dir / "data_manifests"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"{name}.json").write_text(json.dumps(data.manifest, indent=1, sort_keys=True) + "\n", encoding="utf-8")
 
 
 def _json_default(value: Any) -> Any:

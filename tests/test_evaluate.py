@@ -372,6 +372,9 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
 
     first, outcomes = run()
     assert outcomes["read"] == outcomes["scored_here"] > 0 and outcomes["from_store"] == 0
+    for name in ("clean", "fire"):  # the shards each stored run names, to compare a data set recorded again with
+        kept = json.loads((out / "data_manifests" / f"{name}.json").read_text())
+        assert kept == json.loads((tmp_path / name / "manifest.json").read_text())
     n_lines = len((out / OUTCOMES_FILE).read_text().splitlines())
     assert n_lines == outcomes["read"]  # each run scored once, by the worker that trained it
 
