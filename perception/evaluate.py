@@ -54,7 +54,7 @@ import numpy as np
 from sklearn.metrics import confusion_matrix, recall_score
 from tqdm.auto import tqdm
 
-from perception.checkpoint import WEIGHTS_FILE, load_checkpoint
+from perception.checkpoint import load_checkpoint
 from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ssmc_split, usmc_folds,
                                 validation_split)
 from perception.features import feature_dims, keep_modalities
@@ -368,7 +368,8 @@ def _outcome_id(ctx: _Context, job: _TrainJob) -> str:
         score_on = {"data": _strokes_id(ctx.fire.data), "test": indices_sha256(_score_split(ctx, job)[1])}
     return outcome_id({**identity, "class_names": list(names), "data": strokes, "train": indices_sha256(tr),
                        "val": indices_sha256(val), "test": indices_sha256(job.split[1]), "drops": list(job.drops),
-                       "probes": job.probes, "embedding": job.embedding, "score_on": score_on})
+                       "probes": list(ALTERATIONS) if job.probes else [], "embedding": job.embedding,
+                       "score_on": score_on, "test_noise_seed_offset": TEST_CORRUPTION_SEED_OFFSET})
 
 
 def _strokes_id(data: Dataset) -> str:
@@ -378,7 +379,7 @@ def _strokes_id(data: Dataset) -> str:
     shards = data.manifest.get("shards")
     if not shards or not all("sha256" in shard for shard in shards):
         return data.manifest_sha256
-    text = json.dumps(sorted((str(shard["file"]), str(shard["sha256"])) for shard in shards))
+    text = json.dumps([(str(shard["file"]), str(shard["sha256"])) for shard in shards])  # in loading order
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -396,9 +397,10 @@ def _train_and_score(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     y = np.array([names.index(l) for l in labels_of(records, job.task)])
     train_idx, test_idx = job.split
     parent = job.parent
-    if parent is not None and not (parent.run_dir(ctx) / CHECKPOINT_DIR / WEIGHTS_FILE).is_file():
-        # its outcome came from the store, its folder is gone: train it again (seeded, so the same weights on
-        # the same machine and library versions) to fine-tune from
+    if parent is not None:
+        # finished in its folder: reused at once; unfinished or stale: resumed or trained afresh; gone (its
+        # outcome came from the store): trained again. Seeded, but on another machine or library version the
+        # weights may differ from those its stored outcome was scored with.
         parent_records, parent_features, _ = _source(ctx, parent.source)
         _train_run(ctx, parent.model, parent.task, parent.split[0], parent.split_name, parent.seed,
                    parent.corruption, parent_records, parent_features, _job_names(ctx, parent), parent.run_name,
@@ -432,7 +434,8 @@ def _train_and_score(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
             ckpt.model, [keep_modalities(score_features[i], ckpt.feature_config.modalities)
                          for i in _score_split(ctx, job)[1]], dims, stats=ckpt.norm_stats, device=device).pred.tolist()
     outcome.update(pred=pred, best_epoch=res.best_epoch, best_val_accuracy=res.best_val_accuracy,
-                   checkpoint=str(res.checkpoint_dir), n_val=int(len(val)), epochs=len(res.history),
+                   checkpoint=Path(res.checkpoint_dir).relative_to(ctx.out_dir).as_posix(), n_val=int(len(val)),
+                   epochs=len(res.history),
                    train_accuracy_curve=[round(float(h["train_accuracy"]), 4) for h in res.history],
                    val_accuracy_curve=[round(float(h["val_accuracy"]), 4) for h in res.history])
     return outcome
@@ -493,6 +496,7 @@ def _run(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     else:
         outcome = _outcome(ctx, job)
         result.update({k: v for k, v in outcome.items() if k not in ("pred", "embedding")})
+        result["checkpoint"] = str(ctx.out_dir / outcome["checkpoint"])  # stored relative to the report folder
         outputs = {k: np.asarray(v, dtype=np.int64) for k, v in outcome["pred"].items()}
         emb = decode_array(outcome["embedding"]) if "embedding" in outcome else None
     result["_score_pred"] = outputs.pop(f"score:{job.score_on}", None)
@@ -1262,12 +1266,14 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
 
 
 def _keep_manifest(data: Dataset, out_dir: Path, name: str) -> None:
-    """Copy the manifest of a data set the evaluation reads to ``out_dir/data_manifests/<name>.json``: its
-    shards' hashes name the strokes of every stored run (:func:`_strokes_id`), so a data set recorded again
-    that no longer matches can be compared shard by shard."""
+    """Copy the manifest of a data set the evaluation reads to ``out_dir/data_manifests/<name>-<id>.json``,
+    ``<id>`` the first 12 digits of :func:`_strokes_id`: its shards' hashes name the strokes of every stored run,
+    so a data set recorded again that no longer matches them can be compared shard by shard with the one they
+    were trained on (kept under its own name)."""
     folder = out_dir / "data_manifests"
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / f"{name}.json").write_text(json.dumps(data.manifest, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    path = folder / f"{name}-{_strokes_id(data)[:12]}.json"
+    path.write_text(json.dumps(data.manifest, indent=1, sort_keys=True) + "\n", encoding="utf-8")
 
 
 def _json_default(value: Any) -> Any:

@@ -90,10 +90,22 @@ class RunStore:
             try:
                 handle.seek(0)
                 text = handle.read()
-                if text and not text.endswith(b"\n"):  # an unfinished line (a killed writer): drop it
-                    handle.truncate(text.rfind(b"\n") + 1)
+                if text and not text.endswith(b"\n"):
+                    tail = text[text.rfind(b"\n") + 1:]
+                    if _parses(tail):  # a whole record without its newline (an edit): keep it
+                        handle.write(b"\n")
+                    else:  # an unfinished line (a killed writer): drop it
+                        handle.truncate(len(text) - len(tail))
                 handle.write(line.encode("utf-8"))
                 handle.flush()
                 os.fsync(handle.fileno())
             finally:
                 fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _parses(line: bytes) -> bool:
+    try:
+        record = json.loads(line)
+        return isinstance(record, dict) and "id" in record and "outcome" in record
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return False

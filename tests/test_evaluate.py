@@ -348,6 +348,10 @@ def test_run_store_keeps_outcomes_and_names_a_bad_line(tmp_path):
     store.append("d", "y", {"pred": {}})  # the unfinished line is dropped, the new one complete
     assert set(store.load()) == {"a", "b", "d"}
     lines = store.path.read_text().splitlines()
+    store.path.write_text("\n".join(lines))  # a whole last record without its newline (an edit) is kept
+    store.append("e", "z", {"pred": {}})
+    assert set(store.load()) == {"a", "b", "d", "e"}
+    lines = store.path.read_text().splitlines()
     store.path.write_text("\n".join(lines[:1] + ["not json"] + lines[1:]) + "\n")
     with pytest.raises(RunStoreError, match=r"outcomes.jsonl: line 2 is not a run outcome"):
         store.load()
@@ -373,8 +377,8 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     first, outcomes = run()
     assert outcomes["read"] == outcomes["scored_here"] > 0 and outcomes["from_store"] == 0
     for name in ("clean", "fire"):  # the shards each stored run names, to compare a data set recorded again with
-        kept = json.loads((out / "data_manifests" / f"{name}.json").read_text())
-        assert kept == json.loads((tmp_path / name / "manifest.json").read_text())
+        [kept] = (out / "data_manifests").glob(f"{name}-*.json")
+        assert json.loads(kept.read_text()) == json.loads((tmp_path / name / "manifest.json").read_text())
     n_lines = len((out / OUTCOMES_FILE).read_text().splitlines())
     assert n_lines == outcomes["read"]  # each run scored once, by the worker that trained it
 
@@ -387,6 +391,7 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     (tmp_path / "clean" / "manifest.json").write_text(json.dumps(manifest))
     second, outcomes = run(workers=1)
     assert not (out / "runs").exists()  # nothing trained: every outcome came from the store
+    assert len(list((out / "data_manifests").glob("clean-*.json"))) == 1  # same strokes, same name
     assert outcomes == {"file": OUTCOMES_FILE, "read": n_lines, "scored_here": 0, "from_store": n_lines}
     assert f"this report read {n_lines} runs, {n_lines} of them from the store" in (out / "REPORT.md").read_text()
     np.testing.assert_equal(strip(second), strip(first))
