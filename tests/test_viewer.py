@@ -170,7 +170,8 @@ def test_ctrl_c_in_a_terminal_stops_the_demo_quickly_and_keeps_the_replay(tmp_pa
         time.sleep(1.0)  # sorting is under way
         start = time.monotonic()
         os.killpg(demo.pid, signal.SIGINT)
-        assert demo.wait(timeout=30) == 130
+        code = demo.wait(timeout=30)
+        assert code == 130, f"exit code {code}; the demo's stderr:\n{err_path.read_text()}"
         assert time.monotonic() - start < 3.0
     finally:
         if demo.poll() is None:
