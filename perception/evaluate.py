@@ -30,7 +30,8 @@ Every run's checkpoint lives under ``out_dir/runs/``; a rerun with the same sett
 What the report reads from a finished run (its test predictions and training summary) is also appended to the
 run store ``out_dir/outcomes.jsonl`` (:mod:`perception.run_store`), which is small enough to commit: a rerun
 takes every run it holds from it, without the run folders, so an evaluation longer than one sitting resumes on
-another machine from the committed store and the data sets recorded again.
+another machine from the committed store and the data sets recorded again; :func:`evaluation_status`
+(``robotdemo evaluate ... --status``) tells how many of each experiment's runs it holds.
 Writes ``out_dir/REPORT.md``, ``out_dir/results.json`` and PNG figures (confusion matrices, robustness curve,
 t-SNE of test embeddings with and without CER).
 """
@@ -1072,6 +1073,60 @@ EVAL_DEVIATIONS: dict[str, str] = {
 # the evaluation
 
 
+def _experiment_jobs(ctx: _Context) -> tuple[list[_TrainJob], list[_TrainJob]]:
+    """The runs of Table 1 and the ablation (each scored as its sections read it), and those of the robustness
+    curve (every seed, model, p and std; a p = 0 run is its Table-1 run, shared by every intensity)."""
+    cfg = ctx.config
+    ablation = list(cfg.ablation_models) if cfg.ablation else []
+    jobs = []
+    for task in ("ssmc", "usmc", "fine"):
+        for k, (split_name, seed, split) in enumerate(_splits(ctx, task)):
+            for model in dict.fromkeys(list(cfg.models) + ablation):
+                jobs.append(_TrainJob(
+                    model, task, split_name, seed, split,
+                    drops=MODALITIES if (task == "usmc" and cfg.missing_modality and model in cfg.models) else (),
+                    probes=cfg.probes and model in cfg.models,
+                    embedding=cfg.tsne and k == 0 and task != "usmc" and model in ("touchformer", "touchformer_mag")))
+    # (model, p, std); p = 0 once, shared by every intensity (Table 1's SSMC run)
+    rob_cells = list(dict.fromkeys((m, float(p), std if p > 0 else 1.0) for std in cfg.corruption_stds
+                                   for p in cfg.corruption_ratios for m in cfg.robustness_models))
+    splits = {s: ssmc_split(ctx.data.records, s) for s in cfg.seeds} if rob_cells else {}  # each seed's SSMC split
+    rob = [_TrainJob(m, "ssmc", f"seed{s}", s, splits[s], p, std) for s in cfg.seeds for m, p, std in rob_cells]
+    table_job = {job.cache_key(): job for job in jobs}
+    return jobs, [table_job.get(job.cache_key(), job) for job in rob]  # p = 0: scored as Table 1 reads it
+
+
+def evaluation_status(data_dir: str | os.PathLike, out_dir: str | os.PathLike,
+                      fire_dir: str | os.PathLike | None = None, config: EvalConfig | None = None) -> dict[str, Any]:
+    """How far the evaluation of ``config`` on these data sets has come: per experiment, how many of its network
+    runs the run store in ``out_dir`` holds (:func:`_outcome_id`, as :func:`evaluate` names them). Nothing is
+    featurised, trained or written. The reference classifier is not counted: it is fitted afresh each time, in
+    seconds. A run of two experiments (Table 1's SSMC runs are the robustness curve's p = 0) counts in the
+    first."""
+    cfg = config or EvalConfig()
+    out_dir = Path(out_dir)
+    ctx = _Context(data=load_dataset(data_dir), out_dir=out_dir, config=cfg, features=[],
+                   summaries=np.zeros((0, 0)), progress=False, provenance={})
+    if fire_dir is not None:
+        ctx.fire = _load_fire(ctx, Path(fire_dir), featurize=False)
+    jobs, rob = _experiment_jobs(ctx)
+    fire_runs = [_fire_runs(ctx, m, s) for s in cfg.seeds for m in cfg.fire_models] if ctx.fire is not None else []
+    groups = {"table1": [j for j in jobs if j.model in cfg.models],
+              "ablation": [j for j in jobs if j.model not in cfg.models],
+              "fire": [r[kind] for r in fire_runs for kind in ("clean", "finetuned", "scratch")],
+              "single_sensor": [job for _, job in _single_sensor_jobs(ctx)],
+              "robustness": rob}
+    stored = set(RunStore(out_dir / OUTCOMES_FILE).load())
+    counted: set[str] = set()
+    experiments = {}
+    for name, group in groups.items():
+        ids = {_outcome_id(ctx, job) for job in group if job.model != "reference"} - counted
+        counted |= ids
+        experiments[name] = {"stored": len(ids & stored), "runs": len(ids)}
+    return {"store": str(out_dir / OUTCOMES_FILE), "stored": len(counted & stored), "runs": len(counted),
+            "experiments": experiments}
+
+
 def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,
              models: Sequence[str] | None = None, seeds: Sequence[int] | None = None,
              fire_dir: str | os.PathLike | None = None, config: EvalConfig | None = None, device: str | None = None,
@@ -1126,26 +1181,11 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         stds=" and ".join([", ".join(stds[:-1]), stds[-1]] if len(stds) > 1 else stds))
 
     ablation = list(cfg.ablation_models) if cfg.ablation else []
-    jobs = []  # Table 1 and the ablation, each scored as its sections read it
-    for task in ("ssmc", "usmc", "fine"):
-        for k, (split_name, seed, split) in enumerate(_splits(ctx, task)):
-            for model in dict.fromkeys(list(cfg.models) + ablation):
-                jobs.append(_TrainJob(
-                    model, task, split_name, seed, split,
-                    drops=MODALITIES if (task == "usmc" and cfg.missing_modality and model in cfg.models) else (),
-                    probes=cfg.probes and model in cfg.models,
-                    embedding=cfg.tsne and k == 0 and task != "usmc" and model in ("touchformer", "touchformer_mag")))
-    # (model, p, std); p = 0 once, shared by every intensity (Table 1's SSMC run)
-    rob_jobs = list(dict.fromkeys((m, float(p), std if p > 0 else 1.0) for std in cfg.corruption_stds
-                                  for p in cfg.corruption_ratios for m in cfg.robustness_models))
-    rob_splits = {s: ssmc_split(records, s) for s in cfg.seeds} if rob_jobs else {}  # each seed's SSMC split
     if fire_dir is not None:
         ctx.fire = _load_fire(ctx, Path(fire_dir))
         provenance.update(fire_dir=str(fire_dir), fire_manifest_sha256=ctx.fire.data.manifest_sha256)
         _keep_manifest(ctx.fire.data, out_dir, "fire")
-    rob = [_TrainJob(m, "ssmc", f"seed{s}", s, rob_splits[s], p, std) for s in cfg.seeds for m, p, std in rob_jobs]
-    table_job = {job.cache_key(): job for job in jobs}
-    rob = [table_job.get(job.cache_key(), job) for job in rob]  # p = 0: the Table-1 run, scored as Table 1 reads it
+    jobs, rob = _experiment_jobs(ctx)
     ctx.store = RunStore(out_dir / OUTCOMES_FILE)
     ctx.outcomes = ctx.store.load()
     if workers > 1:  # Table 1 and the fire shift first, then the one-sensor runs and the robustness curve
@@ -1221,7 +1261,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         _plot_training_curves(out_dir / "training_curves.png", fit_runs)
         figures.append("training_curves.png")
 
-    if rob_jobs:
+    if rob:
         accuracy: dict[tuple[str, float, float | None], list[float]] = {}
         checkpoints: dict[tuple[str, float, float | None], list[str | None]] = {}
         for job in rob:
@@ -1284,15 +1324,18 @@ def _json_default(value: Any) -> Any:
     return str(value)
 
 
-def _load_fire(ctx: _Context, fire_dir: Path) -> _FireData:
-    """Load and featurise the fire data set; its categories must occur in the clean data."""
+def _load_fire(ctx: _Context, fire_dir: Path, featurize: bool = True) -> _FireData:
+    """Load and featurise the fire data set (``featurize=False``: only its strokes and splits, to name runs);
+    its categories must occur in the clean data."""
     fire = load_dataset(fire_dir)
     names = tuple(sorted({r.category for r in ctx.data.records}))
     unknown = sorted({r.category for r in fire.records} - set(names))
     if unknown:
         raise ValueError(f"{fire_dir}: fire categories {unknown} do not occur in the clean data")
-    features = featurize_records(fire.records, ctx.config.train.feature_config, ctx.progress, "featurize fire")
-    summaries = np.stack([summary_features(r) for r in fire.records])
+    features, summaries = [], np.zeros((0, 0))
+    if featurize:
+        features = featurize_records(fire.records, ctx.config.train.feature_config, ctx.progress, "featurize fire")
+        summaries = np.stack([summary_features(r) for r in fire.records])
     splits = {s: ssmc_split(fire.records, s) for s in ctx.config.seeds}
     return _FireData(data=fire, features=features, summaries=summaries, splits=splits, class_names=names,
                      clean_train={s: clean_training_part(ctx.data.records, fire.records, splits[s][1], s)
@@ -1385,6 +1428,17 @@ def _fire_experiment(ctx: _Context) -> dict[str, Any]:
             "rows": list(rows.values())}
 
 
+def command_config(quick: bool = False, ablation: bool = True, robustness: bool = True,
+                   corruption_stds: Sequence[float] | None = None, seeds: Sequence[int] | None = None) -> EvalConfig:
+    """The evaluation ``robotdemo evaluate``'s options ask for (``--quick``, ``--no-ablation``,
+    ``--no-robustness``, ``--corruption-stds``, ``--seeds``)."""
+    config = quick_config() if quick else EvalConfig()
+    return dataclasses.replace(config, ablation=ablation and config.ablation,
+                               robustness_models=config.robustness_models if robustness else (),
+                               corruption_stds=tuple(float(s) for s in (corruption_stds or config.corruption_stds)),
+                               seeds=tuple(int(s) for s in seeds) if seeds is not None else config.seeds)
+
+
 def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,
                      fire_dir: str | os.PathLike | None = None, device: str = "auto",
                      seeds: Sequence[int] | None = None, models: Sequence[str] | None = None,
@@ -1393,10 +1447,7 @@ def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, qu
     """``robotdemo evaluate``: run :func:`evaluate`, return a short summary (report path, headline accuracies).
     ``ablation=False`` / ``robustness=False`` leave those experiments out (the report says so);
     ``corruption_stds`` replaces the robustness curve's noise intensities."""
-    config = quick_config() if quick else EvalConfig()
-    config = dataclasses.replace(config, ablation=ablation and config.ablation,
-                                 robustness_models=config.robustness_models if robustness else (),
-                                 corruption_stds=tuple(float(s) for s in (corruption_stds or config.corruption_stds)))
+    config = command_config(quick, ablation, robustness, corruption_stds)
     results = evaluate(data_dir, out_dir, quick=quick, models=models, seeds=seeds, fire_dir=fire_dir, device=device,
                        progress=progress, command=command or None, config=config, workers=workers)
     headline = {task: {m: s["accuracy"]["mean"] for m, s in per.items()} for task, per in results["table1"].items()}

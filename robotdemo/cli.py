@@ -147,8 +147,13 @@ def _cmd_convert_lmt(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from perception.evaluate import evaluate_command
+    from perception.evaluate import command_config, evaluate_command, evaluation_status
 
+    if args.status:
+        config = command_config(args.quick, not args.no_ablation, not args.no_robustness, args.corruption_stds,
+                                args.seeds)
+        print(json.dumps(evaluation_status(args.data, args.out, fire_dir=args.fire, config=config), indent=2))
+        return 0
     _output_folder(args.out, "--out")
     summary = evaluate_command(args.data, args.out, quick=args.quick, fire_dir=args.fire, device=args.device,
                                seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet,
@@ -370,6 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--corruption-stds", type=float, nargs="+", default=None, metavar="STD",
                           help="the robustness curve's noise intensities, stds in units of the per-channel "
                                "training feature std (default 1 3 5)")
+    evaluate.add_argument("--status", action="store_true",
+                          help="print how many of the evaluation's network runs the run store in --out holds, per "
+                               "experiment, and stop (nothing is trained or written)")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(func=_cmd_evaluate)
 

@@ -323,6 +323,11 @@ def test_evaluate_cli_takes_the_noise_intensities(tmp_path, capsys):
     assert saved["robustness"]["corruption_stds"] == [2.0]
     assert [level["corruption_std"] for level in saved["robustness"]["levels"]] == [2.0]
     assert (tmp_path / "report" / "runs" / "ssmc" / "lstm" / "seed0_p0.5_std2").is_dir()
+    for stds, stored in (("2", 8), ("3", 0)):  # --status counts the runs of the evaluation the options ask for
+        assert main([*args, "--out", str(tmp_path / "report"), "--corruption-stds", stds, "--status"]) == 0
+        status = json.loads(capsys.readouterr().out)
+        assert status["experiments"]["robustness"] == {"stored": stored, "runs": 8}  # 4 networks at p = 0.5, 1
+        assert status["experiments"]["table1"]["stored"] == status["experiments"]["table1"]["runs"] == 16
     for bad in ("-1", "0", "nan"):
         code = main([*args, "--out", str(tmp_path / "bad"), "--corruption-stds", "3", bad])
         err = capsys.readouterr().err
@@ -358,7 +363,7 @@ def test_run_store_keeps_outcomes_and_names_a_bad_line(tmp_path):
 
 
 def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_path):
-    from perception.evaluate import OUTCOMES_FILE
+    from perception.evaluate import OUTCOMES_FILE, evaluation_status
 
     torch.set_num_threads(1)
     _write_toy_clean_and_fire(tmp_path)
@@ -374,8 +379,17 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
         return {k: results[k] for k in ("table1", "missing_modality", "ablation", "probes", "robustness", "fire",
                                         "single_sensor", "modality_weights")}, results["provenance"]["outcomes"]
 
+    def status():
+        return evaluation_status(tmp_path / "clean", out, fire_dir=tmp_path / "fire", config=config)
+
+    # what the evaluation needs, named as it names its runs: Table 1 4 splits x 2 networks, the ablation's
+    # touchformer_mag on the 4, the fire shift's 3 runs, lstm on each sensor, lstm at p = 1 (p = 0 is Table 1's)
+    runs = {"table1": 8, "ablation": 4, "fire": 3, "single_sensor": 4, "robustness": 1}
+    assert status() == {"store": str(out / OUTCOMES_FILE), "stored": 0, "runs": 20,
+                        "experiments": {name: {"stored": 0, "runs": n} for name, n in runs.items()}}
     first, outcomes = run()
     assert outcomes["read"] == outcomes["scored_here"] > 0 and outcomes["from_store"] == 0
+    assert status()["experiments"] == {name: {"stored": n, "runs": n} for name, n in runs.items()}
     for name in ("clean", "fire"):  # the shards each stored run names, to compare a data set recorded again with
         [kept] = (out / "data_manifests").glob(f"{name}-*.json")
         assert json.loads(kept.read_text()) == json.loads((tmp_path / name / "manifest.json").read_text())
