@@ -981,6 +981,8 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                 f"{_pct(single[m][sensor]['accuracy'])} ({100 * single[m][sensor]['best_val_accuracy']['mean']:.1f})"
                 if sensor in single[m] else "-" for m in models) + " |")
         lines.append("")
+    else:
+        lines += ["## One sensor at a time", "", "Not run in this report (`--no-single-sensor`).", ""]
 
     if results.get("probes"):
         kinds = list(PROBE_LABEL)
@@ -1429,12 +1431,14 @@ def _fire_experiment(ctx: _Context) -> dict[str, Any]:
 
 
 def command_config(quick: bool = False, ablation: bool = True, robustness: bool = True,
-                   corruption_stds: Sequence[float] | None = None, seeds: Sequence[int] | None = None) -> EvalConfig:
+                   corruption_stds: Sequence[float] | None = None, seeds: Sequence[int] | None = None,
+                   single_sensor: bool = True) -> EvalConfig:
     """The evaluation ``robotdemo evaluate``'s options ask for (``--quick``, ``--no-ablation``,
-    ``--no-robustness``, ``--corruption-stds``, ``--seeds``)."""
+    ``--no-robustness``, ``--corruption-stds``, ``--seeds``, ``--no-single-sensor``)."""
     config = quick_config() if quick else EvalConfig()
     return dataclasses.replace(config, ablation=ablation and config.ablation,
                                robustness_models=config.robustness_models if robustness else (),
+                               single_sensor_models=config.single_sensor_models if single_sensor else (),
                                corruption_stds=tuple(float(s) for s in (corruption_stds or config.corruption_stds)),
                                seeds=tuple(int(s) for s in seeds) if seeds is not None else config.seeds)
 
@@ -1443,11 +1447,13 @@ def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, qu
                      fire_dir: str | os.PathLike | None = None, device: str = "auto",
                      seeds: Sequence[int] | None = None, models: Sequence[str] | None = None,
                      command: str = "", progress: bool = True, workers: int = 1, ablation: bool = True,
-                     robustness: bool = True, corruption_stds: Sequence[float] | None = None) -> dict[str, Any]:
+                     robustness: bool = True, corruption_stds: Sequence[float] | None = None,
+                     single_sensor: bool = True) -> dict[str, Any]:
     """``robotdemo evaluate``: run :func:`evaluate`, return a short summary (report path, headline accuracies).
-    ``ablation=False`` / ``robustness=False`` leave those experiments out (the report says so);
+    ``ablation=False`` / ``robustness=False`` / ``single_sensor=False`` leave those experiments out (the report
+    says so);
     ``corruption_stds`` replaces the robustness curve's noise intensities."""
-    config = command_config(quick, ablation, robustness, corruption_stds)
+    config = command_config(quick, ablation, robustness, corruption_stds, single_sensor=single_sensor)
     results = evaluate(data_dir, out_dir, quick=quick, models=models, seeds=seeds, fire_dir=fire_dir, device=device,
                        progress=progress, command=command or None, config=config, workers=workers)
     headline = {task: {m: s["accuracy"]["mean"] for m, s in per.items()} for task, per in results["table1"].items()}

@@ -151,14 +151,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.status:
         config = command_config(args.quick, not args.no_ablation, not args.no_robustness, args.corruption_stds,
-                                args.seeds)
+                                args.seeds, single_sensor=not args.no_single_sensor)
         print(json.dumps(evaluation_status(args.data, args.out, fire_dir=args.fire, config=config), indent=2))
         return 0
     _output_folder(args.out, "--out")
     summary = evaluate_command(args.data, args.out, quick=args.quick, fire_dir=args.fire, device=args.device,
                                seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet,
                                workers=args.workers, ablation=not args.no_ablation,
-                               robustness=not args.no_robustness, corruption_stds=args.corruption_stds)
+                               robustness=not args.no_robustness, corruption_stds=args.corruption_stds,
+                               single_sensor=not args.no_single_sensor)
     print(json.dumps(summary, indent=2, default=str))
     return 0
 
@@ -372,6 +373,8 @@ def build_parser() -> argparse.ArgumentParser:
                           help="train the runs in this many processes first (one torch thread each)")
     evaluate.add_argument("--no-ablation", action="store_true", help="leave the ablation runs out")
     evaluate.add_argument("--no-robustness", action="store_true", help="leave the robustness curve out")
+    evaluate.add_argument("--no-single-sensor", action="store_true",
+                          help="leave out the networks trained on one sensor at a time")
     evaluate.add_argument("--corruption-stds", type=float, nargs="+", default=None, metavar="STD",
                           help="the robustness curve's noise intensities, stds in units of the per-channel "
                                "training feature std (default 1 3 5)")

@@ -317,9 +317,11 @@ def test_evaluate_cli_takes_the_noise_intensities(tmp_path, capsys):
     torch.set_num_threads(1)
     _write_toy_clean_and_fire(tmp_path)
     args = ["evaluate", "--data", str(tmp_path / "clean"), "--quick", "--no-ablation", "--quiet", "--seeds", "0"]
-    assert main([*args, "--out", str(tmp_path / "report"), "--corruption-stds", "2"]) == 0
+    assert main([*args, "--out", str(tmp_path / "report"), "--corruption-stds", "2", "--no-single-sensor"]) == 0
     capsys.readouterr()
     saved = json.loads((tmp_path / "report" / "results.json").read_text())
+    assert "single_sensor" not in saved and not (tmp_path / "report" / "runs" / "single_sensor").exists()
+    assert "Not run in this report (`--no-single-sensor`)" in (tmp_path / "report" / "REPORT.md").read_text()
     assert saved["robustness"]["corruption_stds"] == [2.0]
     assert [level["corruption_std"] for level in saved["robustness"]["levels"]] == [2.0]
     assert (tmp_path / "report" / "runs" / "ssmc" / "lstm" / "seed0_p0.5_std2").is_dir()
@@ -328,6 +330,7 @@ def test_evaluate_cli_takes_the_noise_intensities(tmp_path, capsys):
         status = json.loads(capsys.readouterr().out)
         assert status["experiments"]["robustness"] == {"stored": stored, "runs": 8}  # 4 networks at p = 0.5, 1
         assert status["experiments"]["table1"]["stored"] == status["experiments"]["table1"]["runs"] == 16
+        assert status["experiments"]["single_sensor"] == {"stored": 0, "runs": 4}  # left out of the run above
     for bad in ("-1", "0", "nan"):
         code = main([*args, "--out", str(tmp_path / "bad"), "--corruption-stds", "3", bad])
         err = capsys.readouterr().err
