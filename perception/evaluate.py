@@ -1451,8 +1451,7 @@ def evaluate_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, qu
                      single_sensor: bool = True) -> dict[str, Any]:
     """``robotdemo evaluate``: run :func:`evaluate`, return a short summary (report path, headline accuracies).
     ``ablation=False`` / ``robustness=False`` / ``single_sensor=False`` leave those experiments out (the report
-    says so);
-    ``corruption_stds`` replaces the robustness curve's noise intensities."""
+    says so); ``corruption_stds`` replaces the robustness curve's noise intensities."""
     config = command_config(quick, ablation, robustness, corruption_stds, single_sensor=single_sensor)
     results = evaluate(data_dir, out_dir, quick=quick, models=models, seeds=seeds, fire_dir=fire_dir, device=device,
                        progress=progress, command=command or None, config=config, workers=workers)
