@@ -135,6 +135,11 @@ class EvalConfig:
             points at p = 0.5 on validation (session 17, SSMC seeds 0-2); std 5 asks whether the order at
             std 3 (TouchFormer above both baselines from p = 0.5, session 23's report) holds under heavier
             noise. The quick run keeps std 1 and 3.
+        robustness_fire: with a fire data set, also score every run of the robustness curve zero-shot on the fire
+            room's test strokes, without test noise (:func:`_zero_shot_on_fire`): whether training on corrupted
+            modalities makes a clean-only model hold up in the fire room (session 29's scratch probe of the
+            std-3 runs: TouchFormer from 38 % at p = 0.1 to 54 % at p = 1, its gate trusting the acceleration
+            less).
         fire_models: networks of the clean -> fire experiment (each: clean only, fine-tuned, fire only; every
             seed).
         single_sensor_models: networks trained and tested on one sensor at a time (SSMC, every seed; the other
@@ -159,6 +164,7 @@ class EvalConfig:
     robustness_models: tuple[str, ...] = ("touchformer", "lstm", "mtcnn", "touchformer_soft")
     corruption_ratios: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(11))
     corruption_stds: tuple[float, ...] = (1.0, 3.0, 5.0)
+    robustness_fire: bool = True
     fire_models: tuple[str, ...] = ("touchformer", "touchformer_soft")
     single_sensor_models: tuple[str, ...] = ("touchformer_soft", "mtcnn")
     fine_tune_epochs: int = 20
@@ -339,6 +345,15 @@ def _train_run(ctx: _Context, model: str, task: str, train_idx: np.ndarray, spli
     return res, cfg, val
 
 
+def _train_job(ctx: _Context, job: _TrainJob) -> tuple[TrainResult, TrainConfig, np.ndarray]:
+    """:func:`_train_run` for ``job``: its finished folder reused at once, an unfinished one resumed, a gone one
+    (its outcome came from the store) trained again."""
+    records, features, _ = _source(ctx, job.source)
+    return _train_run(ctx, job.model, job.task, job.split[0], job.split_name, job.seed, job.corruption, records,
+                      features, _job_names(ctx, job), job.run_name, dict(job.train_changes) or None,
+                      job.corruption_std)
+
+
 def _job_names(ctx: _Context, job: _TrainJob) -> tuple[str, ...]:
     records, _, _ = _source(ctx, job.source)
     return _class_names(records, job.task) if job.class_names is None else tuple(job.class_names)
@@ -396,19 +411,13 @@ def _train_and_score(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     records, features, _ = _source(ctx, job.source)
     names = _job_names(ctx, job)
     y = np.array([names.index(l) for l in labels_of(records, job.task)])
-    train_idx, test_idx = job.split
-    parent = job.parent
-    if parent is not None:
+    test_idx = job.split[1]
+    if job.parent is not None:
         # finished in its folder: reused at once; unfinished or stale: resumed or trained afresh; gone (its
         # outcome came from the store): trained again. Seeded, but on another machine or library version the
         # weights may differ from those its stored outcome was scored with.
-        parent_records, parent_features, _ = _source(ctx, parent.source)
-        _train_run(ctx, parent.model, parent.task, parent.split[0], parent.split_name, parent.seed,
-                   parent.corruption, parent_records, parent_features, _job_names(ctx, parent), parent.run_name,
-                   dict(parent.train_changes) or None, parent.corruption_std)
-    res, cfg, val = _train_run(ctx, job.model, job.task, train_idx, job.split_name, job.seed, job.corruption,
-                               records, features, names, job.run_name, dict(job.train_changes) or None,
-                               job.corruption_std)
+        _train_job(ctx, job.parent)
+    res, cfg, val = _train_job(ctx, job)
     device = resolve_device(cfg.device)
     ckpt = load_checkpoint(res.checkpoint_dir, device=device)
     dims = feature_dims(ckpt.feature_config)
@@ -749,7 +758,8 @@ def _plot_probes(path: Path, probes: Mapping[str, Mapping[str, Mapping[str, Mapp
     plt.close(fig)
 
 
-def _plot_robustness(path: Path, levels: Sequence[Mapping[str, Any]]) -> None:
+def _plot_robustness(path: Path, levels: Sequence[Mapping[str, Any]], ylabel: str = "SSMC test accuracy [%]",
+                     title: str = "Gaussian noise of std {std} on random modalities") -> None:
     """One panel per noise intensity: mean accuracy against p, one line per model, with a band of ± one std
     over the seeds."""
     import matplotlib.pyplot as plt
@@ -763,9 +773,9 @@ def _plot_robustness(path: Path, levels: Sequence[Mapping[str, Any]]) -> None:
             line, = ax.plot(x, mean, marker="o", label=MODEL_LABEL.get(model, model))
             ax.fill_between(x, mean - std, mean + std, color=line.get_color(), alpha=0.12, linewidth=0)
         ax.set_xlabel("corruption ratio p")
-        ax.set_title(f"Gaussian noise of std {level['corruption_std']:g} on random modalities", fontsize=9)
+        ax.set_title(title.format(std=f"{level['corruption_std']:g}"), fontsize=9)
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("SSMC test accuracy [%]")
+    axes[0][0].set_ylabel(ylabel)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -856,6 +866,33 @@ def _g(stat: Mapping[str, float]) -> str:
 def _paper(value: Any) -> str:
     """A figure from the paper as printed there (two decimals)."""
     return f"{value:.2f}" if isinstance(value, (int, float)) else str(value)
+
+
+def _zero_shot_lines(rob: Mapping[str, Any]) -> list[str]:
+    """The report's tables of the robustness runs scored zero-shot on fire strokes (:func:`_robustness_on_fire`)."""
+    levels = rob["fire_zero_shot"]
+    n = sorted({k for level in levels for curve in level["n_test"].values() for runs in curve.values() for k in runs})
+    lines = ["### The robustness runs on fire strokes (zero-shot accuracy [%])", "",
+             "Every run above (trained on clean strokes only, with noise of ratio p) scored on the fire room's "
+             f"test strokes of its seed's SSMC split ({' / '.join(map(str, n))} strokes), without test noise: "
+             "does training on corrupted modalities make a clean-only model hold up in the fire room? Mean over "
+             "the seeds; below each TouchFormer variant, its gate's mean weight on each modality for these "
+             f"strokes ({', '.join(MODALITY_SYMBOL.get(m, m) for m in MODALITIES)}). Figure: "
+             "`robustness_fire.png`.", ""]
+    for level in levels:
+        ps = sorted({p for curve in level["curves"].values() for p in curve}, key=float)
+        lines += [f"| trained at noise std {level['corruption_std']:g} | " + " | ".join(f"p={p}" for p in ps) + " |",
+                  "|---|" + "---|" * len(ps)]
+        for model, curve in level["curves"].items():
+            lines.append(f"| {MODEL_LABEL.get(model, model)} | " + " | ".join(
+                f"{100 * curve[p]:.1f} ± {100 * level['curves_std'][model][p]:.1f}" if curve[p] == curve[p] else "-"
+                for p in ps) + " |")
+            for j, modality in enumerate(MODALITIES) if model in level["alpha_mean"] else ():
+                symbol = MODALITY_SYMBOL.get(modality, modality)
+                lines.append(f"| {MODEL_LABEL.get(model, model)}: gate weight {symbol} | " + " | ".join(
+                    f"{level['alpha_mean'][model][p][j]:.2f}" for p in ps) + " |")
+        lines.append("")
+    return lines
 
 
 def _write_report(path: Path, results: Mapping[str, Any]) -> None:
@@ -964,6 +1001,8 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                         str(level["seed_wins"].get(p, "-")) for p in ps) + " |")
                 lines.append("")
         lines += [f"Paper: {PAPER['robustness']}.", ""]
+        if rob.get("fire_zero_shot"):
+            lines += _zero_shot_lines(rob)
     else:
         lines += ["## Robustness to corrupted modalities", "", "Not run in this report (`--no-robustness`).", ""]
 
@@ -1125,8 +1164,12 @@ def evaluation_status(data_dir: str | os.PathLike, out_dir: str | os.PathLike,
         ids = {_outcome_id(ctx, job) for job in group if job.model != "reference"} - counted
         counted |= ids
         experiments[name] = {"stored": len(ids & stored), "runs": len(ids)}
-    return {"store": str(out_dir / OUTCOMES_FILE), "stored": len(counted & stored), "runs": len(counted),
-            "experiments": experiments}
+    status = {"store": str(out_dir / OUTCOMES_FILE), "stored": len(counted & stored), "runs": len(counted),
+              "experiments": experiments}
+    if ctx.fire is not None and cfg.robustness_fire and rob:  # scores of stored runs, no training of their own
+        ids = {_zero_shot_id(ctx, job) for job in rob}
+        status["robustness_fire_scores"] = {"stored": len(ids & stored), "scores": len(ids)}
+    return status
 
 
 def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,
@@ -1288,6 +1331,13 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
                                  "levels": levels}
         _plot_robustness(out_dir / "robustness.png", levels)
         figures.append("robustness.png")
+        if ctx.fire is not None and cfg.robustness_fire:
+            bar.set_postfix_str("robustness runs on fire strokes")
+            results["robustness"]["fire_zero_shot"] = _robustness_on_fire(ctx, rob)
+            _plot_robustness(out_dir / "robustness_fire.png", results["robustness"]["fire_zero_shot"],
+                             ylabel="zero-shot accuracy on fire strokes [%]",
+                             title="trained with noise of std {std}; fire strokes, no test noise")
+            figures.append("robustness_fire.png")
     bar.close()
 
     if cfg.single_sensor_models:
@@ -1428,6 +1478,80 @@ def _fire_experiment(ctx: _Context) -> dict[str, Any]:
     return {"split": "ssmc seeds " + ", ".join(map(str, cfg.seeds)), "n_fire_train": int(len(s0[0])),
             "n_fire_test": int(len(s0[1])), "n_clean_train": int(len(fire.clean_train[cfg.seeds[0]])),
             "rows": list(rows.values())}
+
+
+def _zero_shot_test(ctx: _Context, job: _TrainJob) -> np.ndarray:
+    """The fire strokes ``job``'s run is scored on zero-shot: the test part of its seed's SSMC split of the fire
+    data set, without any stroke whose clean twin (:func:`_stroke_key`) the run trained on (a twin read high,
+    see :func:`clean_training_part`; with ``robotdemo dataset``'s splits there is none)."""
+    assert ctx.fire is not None
+    seen = {_stroke_key(ctx.data.records[i]) for i in job.split[0]} - {None}
+    return np.array([i for i in ctx.fire.splits[job.seed][1] if _stroke_key(ctx.fire.data.records[i]) not in seen],
+                    dtype=np.int64)
+
+
+def _zero_shot_id(ctx: _Context, job: _TrainJob) -> str:
+    """The run store's name for the zero-shot fire score of ``job``'s run: that run's outcome id, the fire data
+    set's strokes and the strokes scored (:func:`_zero_shot_test`)."""
+    assert ctx.fire is not None
+    return outcome_id({"zero_shot_of": _outcome_id(ctx, job), "data": _strokes_id(ctx.fire.data),
+                       "test": indices_sha256(_zero_shot_test(ctx, job))})
+
+
+def _zero_shot_on_fire(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
+    """``job``'s run (a network trained on clean strokes) scored on the fire strokes of :func:`_zero_shot_test`
+    without test noise: accuracy, how many strokes, and the gate's modality weights on them
+    (:func:`_modality_weights`; zeros for a model without a gate). The predictions come from the run store, or
+    from the run's checkpoint now (a gone run folder is trained again, :func:`_train_job`) and are added to it."""
+    assert ctx.fire is not None
+    run_id = _zero_shot_id(ctx, job)
+    test = _zero_shot_test(ctx, job)
+    outcome = ctx.outcomes.get(run_id)
+    if outcome is None:
+        res, cfg, _ = _train_job(ctx, job)
+        device = resolve_device(cfg.device)
+        ckpt = load_checkpoint(res.checkpoint_dir, device=device)
+        feats = [keep_modalities(ctx.fire.features[i], ckpt.feature_config.modalities) for i in test]
+        preds = predict(ckpt.model, feats, feature_dims(ckpt.feature_config), stats=ckpt.norm_stats, device=device)
+        outcome = {"pred": preds.pred.tolist(), **_modality_weights(preds.alphas, feats)}
+        if ctx.store is not None:
+            ctx.store.append(run_id, f"{job.run_dir(ctx).relative_to(ctx.out_dir).as_posix()} zero-shot on fire",
+                             outcome)
+        ctx.outcomes[run_id] = outcome
+        ctx.scored.add(run_id)
+    ctx.used.add(run_id)
+    names = _job_names(ctx, job)
+    y = np.array([names.index(ctx.fire.data.records[i].category) for i in test], dtype=np.int64)
+    pred = np.asarray(outcome["pred"], dtype=np.int64)
+    return {"accuracy": float(np.mean(pred == y)) if len(y) else float("nan"), "n_test": int(len(y)),
+            "alpha_mean": outcome["alpha_mean"]}
+
+
+def _robustness_on_fire(ctx: _Context, rob: Sequence[_TrainJob]) -> list[dict[str, Any]]:
+    """Per noise intensity: every robustness-curve model's mean ± std (over the seeds) zero-shot accuracy on the
+    fire strokes against p (:func:`_zero_shot_on_fire`), and TouchFormer's mean gate weights on them."""
+    cfg = ctx.config
+    scores: dict[tuple[str, float, float | None], list[dict[str, Any]]] = {}
+    for job in tqdm(rob, desc="robustness runs on fire strokes", disable=not ctx.progress, leave=False):
+        key = (job.model, job.corruption, _noise_std(job.corruption, job.corruption_std))
+        scores.setdefault(key, []).append(_zero_shot_on_fire(ctx, job))
+    levels = []
+    for std in cfg.corruption_stds:
+        cell = {m: {repr(float(p)): scores[(m, float(p), _noise_std(p, std))] for p in cfg.corruption_ratios}
+                for m in cfg.robustness_models}
+        stats = {m: {p: _mean_std([r["accuracy"] for r in runs]) for p, runs in curve.items()}
+                 for m, curve in cell.items()}
+        levels.append({"corruption_std": std,
+                       "curves": {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()},
+                       "curves_std": {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()},
+                       "per_seed": {m: {p: [r["accuracy"] for r in runs] for p, runs in curve.items()}
+                                    for m, curve in cell.items()},
+                       "n_test": {m: {p: [r["n_test"] for r in runs] for p, runs in curve.items()}
+                                  for m, curve in cell.items()},
+                       "alpha_mean": {m: {p: np.mean([r["alpha_mean"] for r in runs], axis=0).round(4).tolist()
+                                          for p, runs in curve.items()}
+                                      for m, curve in cell.items() if m.startswith("touchformer")}})
+    return levels
 
 
 def command_config(quick: bool = False, ablation: bool = True, robustness: bool = True,

@@ -227,6 +227,24 @@ def test_clean_models_of_the_fire_shift_never_train_on_a_fire_test_strokes_clean
                                   ssmc_split(plain, 0)[0])
 
 
+def test_robustness_runs_are_scored_on_fire_strokes_whose_clean_twin_they_never_trained_on():
+    from types import SimpleNamespace
+
+    from perception.dataset import ssmc_split
+    from perception.evaluate import _zero_shot_test
+
+    clean, fire = _twin_recordings()
+    key = lambda r: (r.instance, r.meta["object_id"], r.meta["stroke_seed"])  # noqa: E731
+    for seed in (0, 1, 2):
+        split, fire_test = ssmc_split(clean, seed), ssmc_split(fire, seed)[1]
+        ctx = SimpleNamespace(data=SimpleNamespace(records=clean),
+                              fire=SimpleNamespace(data=SimpleNamespace(records=fire), splits={seed: (None, fire_test)}))
+        scored = _zero_shot_test(ctx, SimpleNamespace(split=split, seed=seed))
+        seen = {key(clean[i]) for i in split[0]}
+        assert set(scored) == {i for i in fire_test if key(fire[i]) not in seen}
+        assert 0 < len(scored) < len(fire_test)  # the shuffled order put some twins in the clean training part
+
+
 def test_a_fine_tuned_run_is_trained_again_when_the_checkpoint_it_starts_from_changes(tmp_path):
     from perception.train import StaleRunError, TrainConfig, train
 
@@ -287,10 +305,37 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
                     assert trained["meta"]["train_config"]["corruption_std"] == std
     weak, strong = (level["per_seed"]["lstm"] for level in rob["levels"])
     assert weak["0.0"] == strong["0.0"] and weak["1.0"] != strong["1.0"]
+    # every run of the curve scored zero-shot on the fire test strokes of its seed, without test noise
+    from perception.dataset import load_dataset, ssmc_split
+    from perception.features import feature_dims
+    from perception.train import featurize_records, predict
+
+    fire = load_dataset(tmp_path / "fire")
+    on_fire = rob["fire_zero_shot"]
+    assert [level["corruption_std"] for level in on_fire] == [level["corruption_std"] for level in rob["levels"]]
+    for level in on_fire:
+        std = level["corruption_std"]
+        for p in ("0.0", "1.0"):
+            for seed in (0, 1):
+                name = f"seed{seed}_p{p}" + ("" if p == "0.0" else f"_std{std:g}")
+                ckpt = load_checkpoint(out / "runs" / "ssmc" / "lstm" / name / "checkpoint")
+                test = ssmc_split(fire.records, seed)[1]
+                pred = predict(ckpt.model, featurize_records([fire.records[i] for i in test], ckpt.feature_config),
+                               feature_dims(ckpt.feature_config), stats=ckpt.norm_stats).pred
+                y = [ckpt.class_names.index(fire.records[i].category) for i in test]
+                assert level["per_seed"]["lstm"][p][seed] == pytest.approx(np.mean(pred == np.array(y)))
+                assert level["n_test"]["lstm"][p][seed] == len(test)
+        assert level["curves"]["lstm"]["1.0"] == pytest.approx(np.mean(level["per_seed"]["lstm"]["1.0"]))
+        assert level["alpha_mean"] == {}  # the LSTM has no gate
+    assert on_fire[0]["per_seed"]["lstm"]["0.0"] == on_fire[1]["per_seed"]["lstm"]["0.0"]  # one p = 0 run
+    assert "robustness_fire.png" in results["figures"] and (out / "robustness_fire.png").stat().st_size > 0
     report = (out / "REPORT.md").read_text()
     assert "Mean ± std over the seeds (ssmc seeds 0, 1" in report
     assert report.count("| std over the seeds | p=0.0 | p=1.0 |") == 2
     assert "| noise std 1 | p=0.0 | p=1.0 |" in report and "| noise std 3 | p=0.0 | p=1.0 |" in report
+    assert "### The robustness runs on fire strokes (zero-shot accuracy [%])" in report
+    assert "| trained at noise std 3 | p=0.0 | p=1.0 |" in report
+    assert f"| LSTM | {100 * on_fire[1]['curves']['lstm']['0.0']:.1f} ± " in report
     assert f"| {evaluation._pct(rows['reference, fire only']['accuracy'])} |" in report
 
 
@@ -388,11 +433,14 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     # what the evaluation needs, named as it names its runs: Table 1 4 splits x 2 networks, the ablation's
     # touchformer_mag on the 4, the fire shift's 3 runs, lstm on each sensor, lstm at p = 1 (p = 0 is Table 1's)
     runs = {"table1": 8, "ablation": 4, "fire": 3, "single_sensor": 4, "robustness": 1}
+    # and the robustness curve's two runs (p = 0 and 1) scored on fire strokes
     assert status() == {"store": str(out / OUTCOMES_FILE), "stored": 0, "runs": 20,
-                        "experiments": {name: {"stored": 0, "runs": n} for name, n in runs.items()}}
+                        "experiments": {name: {"stored": 0, "runs": n} for name, n in runs.items()},
+                        "robustness_fire_scores": {"stored": 0, "scores": 2}}
     first, outcomes = run()
     assert outcomes["read"] == outcomes["scored_here"] > 0 and outcomes["from_store"] == 0
     assert status()["experiments"] == {name: {"stored": n, "runs": n} for name, n in runs.items()}
+    assert status()["robustness_fire_scores"] == {"stored": 2, "scores": 2}
     for name in ("clean", "fire"):  # the shards each stored run names, to compare a data set recorded again with
         [kept] = (out / "data_manifests").glob(f"{name}-*.json")
         assert json.loads(kept.read_text()) == json.loads((tmp_path / name / "manifest.json").read_text())
