@@ -879,6 +879,15 @@ def _zero_shot_lines(rob: Mapping[str, Any]) -> list[str]:
              "the seeds; below each TouchFormer variant, its gate's mean weight on each modality for these "
              f"strokes ({', '.join(MODALITY_SYMBOL.get(m, m) for m in MODALITIES)}). Figure: "
              "`robustness_fire.png`.", ""]
+    agreement = list({(model, p, float(p) > 0 and level["corruption_std"], k): a for level in levels  # p = 0: one run
+                      for model, curve in level["stored_test_agreement"].items()
+                      for p, runs in curve.items() for k, a in enumerate(runs)}.values())
+    differ = sum(a < 1.0 for a in agreement)
+    lines += [f"Each scored checkpoint predicts its run's own clean test strokes as the run store holds "
+              + ("on every stroke" if not differ else
+                 f"on {100 * min(agreement):.1f} % of the strokes or more ({differ} of {len(agreement)} checkpoints "
+                 "differ: trained again, their folders gone, with other weights)")
+              + f" ({len(agreement)} checkpoints).", ""]
     for level in levels:
         ps = sorted({p for curve in level["curves"].values() for p in curve}, key=float)
         lines += [f"| trained at noise std {level['corruption_std']:g} | " + " | ".join(f"p={p}" for p in ps) + " |",
@@ -1501,19 +1510,28 @@ def _zero_shot_id(ctx: _Context, job: _TrainJob) -> str:
 def _zero_shot_on_fire(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     """``job``'s run (a network trained on clean strokes) scored on the fire strokes of :func:`_zero_shot_test`
     without test noise: accuracy, how many strokes, and the gate's modality weights on them
-    (:func:`_modality_weights`; zeros for a model without a gate). The predictions come from the run store, or
-    from the run's checkpoint now (a gone run folder is trained again, :func:`_train_job`) and are added to it."""
+    (:func:`_modality_weights`; zeros for a model without a gate), and ``stored_test_agreement``: the share of
+    the run's own (clean) test strokes on which the scored checkpoint predicts what the run store holds for the
+    run. The predictions come from the run store, or from the run's checkpoint now (a gone run folder is trained
+    again, :func:`_train_job`: seeded, but on another machine or library version the weights may differ, which
+    the agreement shows) and are added to it."""
     assert ctx.fire is not None
     run_id = _zero_shot_id(ctx, job)
     test = _zero_shot_test(ctx, job)
     outcome = ctx.outcomes.get(run_id)
     if outcome is None:
+        stored = _outcome(ctx, job)["pred"]["none"]
         res, cfg, _ = _train_job(ctx, job)
         device = resolve_device(cfg.device)
         ckpt = load_checkpoint(res.checkpoint_dir, device=device)
-        feats = [keep_modalities(ctx.fire.features[i], ckpt.feature_config.modalities) for i in test]
-        preds = predict(ckpt.model, feats, feature_dims(ckpt.feature_config), stats=ckpt.norm_stats, device=device)
-        outcome = {"pred": preds.pred.tolist(), **_modality_weights(preds.alphas, feats)}
+        dims, modalities = feature_dims(ckpt.feature_config), ckpt.feature_config.modalities
+        again = predict(ckpt.model, [keep_modalities(ctx.features[i], modalities) for i in job.split[1]], dims,
+                        stats=ckpt.norm_stats, device=device, corruption_ratio=job.corruption,
+                        corruption_std=job.corruption_std, seed=job.seed + TEST_CORRUPTION_SEED_OFFSET).pred
+        feats = [keep_modalities(ctx.fire.features[i], modalities) for i in test]
+        preds = predict(ckpt.model, feats, dims, stats=ckpt.norm_stats, device=device)
+        outcome = {"pred": preds.pred.tolist(), **_modality_weights(preds.alphas, feats),
+                   "stored_test_agreement": round(float(np.mean(again == np.asarray(stored))), 4)}
         if ctx.store is not None:
             ctx.store.append(run_id, f"{job.run_dir(ctx).relative_to(ctx.out_dir).as_posix()} zero-shot on fire",
                              outcome)
@@ -1524,7 +1542,7 @@ def _zero_shot_on_fire(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     y = np.array([names.index(ctx.fire.data.records[i].category) for i in test], dtype=np.int64)
     pred = np.asarray(outcome["pred"], dtype=np.int64)
     return {"accuracy": float(np.mean(pred == y)) if len(y) else float("nan"), "n_test": int(len(y)),
-            "alpha_mean": outcome["alpha_mean"]}
+            "alpha_mean": outcome["alpha_mean"], "stored_test_agreement": outcome["stored_test_agreement"]}
 
 
 def _robustness_on_fire(ctx: _Context, rob: Sequence[_TrainJob]) -> list[dict[str, Any]]:
@@ -1548,6 +1566,8 @@ def _robustness_on_fire(ctx: _Context, rob: Sequence[_TrainJob]) -> list[dict[st
                                     for m, curve in cell.items()},
                        "n_test": {m: {p: [r["n_test"] for r in runs] for p, runs in curve.items()}
                                   for m, curve in cell.items()},
+                       "stored_test_agreement": {m: {p: [r["stored_test_agreement"] for r in runs]
+                                                     for p, runs in curve.items()} for m, curve in cell.items()},
                        "alpha_mean": {m: {p: np.mean([r["alpha_mean"] for r in runs], axis=0).round(4).tolist()
                                           for p, runs in curve.items()}
                                       for m, curve in cell.items() if m.startswith("touchformer")}})

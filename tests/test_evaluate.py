@@ -325,6 +325,7 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
                 y = [ckpt.class_names.index(fire.records[i].category) for i in test]
                 assert level["per_seed"]["lstm"][p][seed] == pytest.approx(np.mean(pred == np.array(y)))
                 assert level["n_test"]["lstm"][p][seed] == len(test)
+                assert level["stored_test_agreement"]["lstm"][p][seed] == 1.0  # the run's own checkpoint
         assert level["curves"]["lstm"]["1.0"] == pytest.approx(np.mean(level["per_seed"]["lstm"]["1.0"]))
         assert level["alpha_mean"] == {}  # the LSTM has no gate
     assert on_fire[0]["per_seed"]["lstm"]["0.0"] == on_fire[1]["per_seed"]["lstm"]["0.0"]  # one p = 0 run
@@ -336,6 +337,7 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
     assert "### The robustness runs on fire strokes (zero-shot accuracy [%])" in report
     assert "| trained at noise std 3 | p=0.0 | p=1.0 |" in report
     assert f"| LSTM | {100 * on_fire[1]['curves']['lstm']['0.0']:.1f} ± " in report
+    assert "as the run store holds on every stroke (6 checkpoints)" in report  # 2 seeds x (p = 0, 1 x 2 stds)
     assert f"| {evaluation._pct(rows['reference, fire only']['accuracy'])} |" in report
 
 
@@ -469,6 +471,17 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     assert outcomes["scored_here"] == 1
     assert (out / "runs" / "fire" / "seed0" / "clean_lstm" / "checkpoint" / "model.safetensors").is_file()
     np.testing.assert_equal(strip(third), strip(first))
+
+    # fire scores missing from the store are scored again, their runs trained again where the folders are gone
+    shutil.rmtree(out / "runs")
+    lines = (out / OUTCOMES_FILE).read_text().splitlines()
+    (out / OUTCOMES_FILE).write_text("\n".join(l for l in lines if "zero-shot on fire" not in l) + "\n")
+    assert len(lines) - len((out / OUTCOMES_FILE).read_text().splitlines()) == 2
+    fourth, outcomes = run()
+    assert outcomes["scored_here"] == 2
+    np.testing.assert_equal(strip(fourth), strip(first))  # same weights: same fire scores, full agreement
+    assert {a for level in fourth["robustness"]["fire_zero_shot"] for runs in
+            level["stored_test_agreement"]["lstm"].values() for a in runs} == {1.0}
 
     # another setting is another run: nothing is reused
     fewer = dataclasses.replace(config, train=dataclasses.replace(config.train, epochs=1))
