@@ -15,6 +15,8 @@
    ``corruption_stds`` (the paper runs "different gaussian noise intensities"), on the SSMC split of every seed
    (mean and std over the seeds; p = 0 is Table 1's SSMC runs, shared by every intensity).
    The reference classifier reads raw streams, not features, so it is left out of this experiment.
+   With ``fire_dir``, every run of the curve is also scored zero-shot on the fire test strokes, without test
+   noise (:func:`_robustness_on_fire`): does training on corrupted sensors carry over to the fire room?
 5. What the networks use (:mod:`perception.probes`): the Table-1 runs' test strokes altered at inference (frames
    shuffled or reversed in time, sensors shifted against each other, each sensor taken from another stroke of
    the same class); nothing is trained for it.
@@ -32,8 +34,8 @@ run store ``out_dir/outcomes.jsonl`` (:mod:`perception.run_store`), which is sma
 takes every run it holds from it, without the run folders, so an evaluation longer than one sitting resumes on
 another machine from the committed store and the data sets recorded again; :func:`evaluation_status`
 (``robotdemo evaluate ... --status``) tells how many of each experiment's runs it holds.
-Writes ``out_dir/REPORT.md``, ``out_dir/results.json`` and PNG figures (confusion matrices, robustness curve,
-t-SNE of test embeddings with and without CER).
+Writes ``out_dir/REPORT.md``, ``out_dir/results.json`` and PNG figures (confusion matrices, robustness curve and
+its runs on fire strokes, t-SNE of test embeddings with and without CER).
 """
 
 from __future__ import annotations

@@ -365,7 +365,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = sub.add_parser("evaluate", help="the paper's experiments on our data: REPORT.md, JSON, plots")
     evaluate.add_argument("--data", required=True)
     evaluate.add_argument("--out", default="reports")
-    evaluate.add_argument("--fire", default=None, help="a fire-environment data set for the clean -> fire shift")
+    evaluate.add_argument("--fire", default=None, help="a fire-environment data set: the clean -> fire shift, and "
+                          "the robustness runs scored zero-shot on its strokes")
     evaluate.add_argument("--quick", action="store_true", help="a small run (few epochs, one seed)")
     evaluate.add_argument("--seeds", type=_non_negative_int, nargs="+", default=None)
     evaluate.add_argument("--device", default="auto")
