@@ -407,6 +407,12 @@ def _score_split(ctx: _Context, job: _TrainJob) -> tuple[np.ndarray, np.ndarray]
     return ctx.fire.splits[job.seed]
 
 
+def _test_noise(job: _TrainJob) -> dict[str, Any]:
+    """The test-time corruption ``job``'s run is scored with (:func:`perception.train.predict`'s arguments)."""
+    return dict(corruption_ratio=job.corruption, corruption_std=job.corruption_std,
+                seed=job.seed + TEST_CORRUPTION_SEED_OFFSET)
+
+
 def _train_and_score(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     """Train ``job``'s run (or reuse its finished folder) and score it: the run store's outcome of it (training
     summary, test predictions by test condition, optionally the test embeddings)."""
@@ -423,8 +429,7 @@ def _train_and_score(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     device = resolve_device(cfg.device)
     ckpt = load_checkpoint(res.checkpoint_dir, device=device)
     dims = feature_dims(ckpt.feature_config)
-    noise = dict(corruption_ratio=job.corruption, corruption_std=job.corruption_std,
-                 seed=job.seed + TEST_CORRUPTION_SEED_OFFSET)
+    noise = _test_noise(job)
     test_feats = [keep_modalities(features[i], ckpt.feature_config.modalities) for i in test_idx]
     pred: dict[str, list[int]] = {}
     outcome: dict[str, Any] = {"git_commit": ckpt.meta.get("git_commit")}  # the code that trained it
@@ -1331,11 +1336,8 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         for std in cfg.corruption_stds:
             per_seed = {m: {repr(float(p)): accuracy[(m, float(p), _noise_std(p, std))]
                             for p in cfg.corruption_ratios} for m in cfg.robustness_models}
-            stats = {m: {p: _mean_std(acc) for p, acc in curve.items()} for m, curve in per_seed.items()}
-            levels.append({"corruption_std": std,
-                           "curves": {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()},
-                           "curves_std": {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()},
-                           "per_seed": per_seed, "seed_wins": _seed_wins(per_seed, "touchformer"),
+            levels.append({"corruption_std": std, **_curve_tables(per_seed),
+                           "seed_wins": _seed_wins(per_seed, "touchformer"),
                            "checkpoints": {m: {repr(float(p)): checkpoints[(m, float(p), _noise_std(p, std))]
                                                for p in cfg.corruption_ratios} for m in cfg.robustness_models}})
         results["robustness"] = {"seeds": list(cfg.seeds), "corruption_stds": list(cfg.corruption_stds),
@@ -1512,7 +1514,7 @@ def _zero_shot_id(ctx: _Context, job: _TrainJob) -> str:
 def _zero_shot_on_fire(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     """``job``'s run (a network trained on clean strokes) scored on the fire strokes of :func:`_zero_shot_test`
     without test noise: accuracy, how many strokes, and the gate's modality weights on them
-    (:func:`_modality_weights`; zeros for a model without a gate), and ``stored_test_agreement``: the share of
+    (:func:`_modality_weights`; even over the present sensors for a model without a gate), and ``stored_test_agreement``: the share of
     the run's own (clean) test strokes on which the scored checkpoint predicts what the run store holds for the
     run. The predictions come from the run store, or from the run's checkpoint now (a gone run folder is trained
     again, :func:`_train_job`: seeded, but on another machine or library version the weights may differ, which
@@ -1528,8 +1530,7 @@ def _zero_shot_on_fire(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
         ckpt = load_checkpoint(res.checkpoint_dir, device=device)
         dims, modalities = feature_dims(ckpt.feature_config), ckpt.feature_config.modalities
         again = predict(ckpt.model, [keep_modalities(ctx.features[i], modalities) for i in job.split[1]], dims,
-                        stats=ckpt.norm_stats, device=device, corruption_ratio=job.corruption,
-                        corruption_std=job.corruption_std, seed=job.seed + TEST_CORRUPTION_SEED_OFFSET).pred
+                        stats=ckpt.norm_stats, device=device, **_test_noise(job)).pred
         feats = [keep_modalities(ctx.fire.features[i], modalities) for i in test]
         preds = predict(ckpt.model, feats, dims, stats=ckpt.norm_stats, device=device)
         outcome = {"pred": preds.pred.tolist(), **_modality_weights(preds.alphas, feats),
@@ -1547,6 +1548,15 @@ def _zero_shot_on_fire(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
             "alpha_mean": outcome["alpha_mean"], "stored_test_agreement": outcome["stored_test_agreement"]}
 
 
+def _curve_tables(per_seed: Mapping[str, Mapping[str, Sequence[float]]]) -> dict[str, Any]:
+    """A robustness level's tables from the per-seed figures (model -> p -> one figure per seed): their mean
+    (``curves``), sample std (``curves_std``) and the figures themselves (``per_seed``)."""
+    stats = {m: {p: _mean_std(values) for p, values in curve.items()} for m, curve in per_seed.items()}
+    return {"curves": {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()},
+            "curves_std": {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()},
+            "per_seed": {m: dict(curve) for m, curve in per_seed.items()}}
+
+
 def _robustness_on_fire(ctx: _Context, rob: Sequence[_TrainJob]) -> list[dict[str, Any]]:
     """Per noise intensity: every robustness-curve model's mean ± std (over the seeds) zero-shot accuracy on the
     fire strokes against p (:func:`_zero_shot_on_fire`), and TouchFormer's mean gate weights on them."""
@@ -1559,13 +1569,9 @@ def _robustness_on_fire(ctx: _Context, rob: Sequence[_TrainJob]) -> list[dict[st
     for std in cfg.corruption_stds:
         cell = {m: {repr(float(p)): scores[(m, float(p), _noise_std(p, std))] for p in cfg.corruption_ratios}
                 for m in cfg.robustness_models}
-        stats = {m: {p: _mean_std([r["accuracy"] for r in runs]) for p, runs in curve.items()}
-                 for m, curve in cell.items()}
         levels.append({"corruption_std": std,
-                       "curves": {m: {p: st["mean"] for p, st in curve.items()} for m, curve in stats.items()},
-                       "curves_std": {m: {p: st["std"] for p, st in curve.items()} for m, curve in stats.items()},
-                       "per_seed": {m: {p: [r["accuracy"] for r in runs] for p, runs in curve.items()}
-                                    for m, curve in cell.items()},
+                       **_curve_tables({m: {p: [r["accuracy"] for r in runs] for p, runs in curve.items()}
+                                        for m, curve in cell.items()}),
                        "n_test": {m: {p: [r["n_test"] for r in runs] for p, runs in curve.items()}
                                   for m, curve in cell.items()},
                        "stored_test_agreement": {m: {p: [r["stored_test_agreement"] for r in runs]
