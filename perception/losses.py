@@ -68,3 +68,22 @@ def total_loss(logits: torch.Tensor, embedding: torch.Tensor, labels: torch.Tens
     contrastive = cross_instance_contrastive_loss(embedding, labels, cer_tau)
     total = ce + cer_lambda * contrastive if cer_lambda > 0 else ce
     return LossTerms(total=total, ce=ce, contrastive=contrastive.detach() if cer_lambda <= 0 else contrastive)
+
+
+def unimodal_cross_entropy(unimodal_logits: torch.Tensor, labels: torch.Tensor, present: torch.Tensor
+                           ) -> torch.Tensor:
+    """Mean cross-entropy of the per-modality auxiliary heads over the present (stroke, modality) pairs.
+
+    Args:
+        unimodal_logits: (B, M, K) class scores of each modality's head.
+        labels: (B,) class indices.
+        present: (B, M) bool, False for a missing modality (left out of the mean).
+
+    Returns:
+        Scalar loss; 0 (still differentiable) when no modality is present.
+    """
+    b, m, k = unimodal_logits.shape
+    per_pair = F.cross_entropy(unimodal_logits.reshape(b * m, k), labels.repeat_interleave(m),
+                               reduction="none").view(b, m)  # (B, M)
+    weight = present.to(per_pair.dtype)  # (B, M)
+    return (per_pair * weight).sum() / weight.sum().clamp(min=1.0)

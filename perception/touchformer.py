@@ -25,6 +25,8 @@ Choices the paper leaves open, made here:
   (off by default) passes one as if it had been kept, without changing what the model computes.
 - ``stem_dilations`` (empty by default, the paper's single Conv1D) adds residual dilated Conv1D layers after
   step 1's Conv1D, as MTCNN's encoders have; an option for comparing per-sensor encoders, not the paper's.
+- ``unimodal_lambda`` (0 by default, not the paper's) adds a training-only head per modality on its own pooled
+  feature and their cross-entropy to the loss; the prediction does not use them (:meth:`TouchFormer.forward`).
 - Eqs. 1-2 apply W1 to X_m (T_m x d) and yield one g_m; where the time axis is pooled is not said. By default
   the gate takes the masked mean of X_m; ``gate_pool="hidden"`` pools H_m after the ReLU instead.
 - ``gate_temperature`` divides the gates before eq. 3's softmax: 0.2 by default instead of the paper's implicit
@@ -112,11 +114,21 @@ class TouchFormerConfig:
         residual_base: what eq. 9's residual adds the cross-attention outputs to. "gated" (the default):
             eq. 4's Z_m = alpha_m (X_m + PE), taken on the Conv1D output; "plain": eq. 6's Z^[0]_m = X_m + PE,
             without the weight, as eq. 9 writes it (the module docstring, "Choices the paper leaves open").
+        unimodal_lambda: weight of an auxiliary training loss, not the paper's: a linear head per modality on
+            its own pooled step-5 feature (before alpha) predicts the class, and the mean cross-entropy of those
+            heads over the present modalities is added to eq. 14's loss with this weight (deep supervision of
+            each sensor's branch, against one sensor's gradient drowning the others'). The heads are used in
+            training only; the model's prediction is unchanged. 0 (the default) builds no heads.
     """
 
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"final_norm": True}
     """Fields added after configs were first saved whose value in such a saved config is not the default:
     a checkpoint or run written before ``final_norm`` existed has the closing LayerNorm."""
+
+    IDENTITY_OMITS: ClassVar[dict[str, Any]] = {"unimodal_lambda": 0.0}
+    """Fields added after the evaluation's runs were stored, with the value that does what those runs did: a run
+    identity (:func:`perception.train.run_identity`) leaves such a field out at that value, so the stored runs
+    stay the runs the current code would train."""
 
     in_dims: tuple[int, ...]
     n_classes: int
@@ -141,6 +153,7 @@ class TouchFormerConfig:
     head_mlp: bool = False
     final_norm: bool = False
     residual_base: str = "gated"
+    unimodal_lambda: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -165,6 +178,8 @@ class TouchFormerConfig:
             raise ValueError(f"stem_dilations must be positive, got {self.stem_dilations}")
         if self.gate_pool not in GATE_POOLS:
             raise ValueError(f"gate_pool must be one of {GATE_POOLS}, got {self.gate_pool!r}")
+        if not (isinstance(self.unimodal_lambda, (int, float)) and self.unimodal_lambda >= 0):
+            raise ValueError(f"unimodal_lambda must be a number >= 0, got {self.unimodal_lambda!r}")
         if self.residual_base not in RESIDUAL_BASES:
             raise ValueError(f"residual_base must be one of {RESIDUAL_BASES}, got {self.residual_base!r}")
 
@@ -453,8 +468,15 @@ class TouchFormer(nn.Module):
                                        nn.Linear(width, width)) if c.head_mlp else None)
         self.classifier = nn.Linear(width, c.n_classes)
         self.embedding_head = nn.Linear(width, c.emb_dim)
+        self.unimodal_heads = (nn.ModuleDict({m: nn.Linear(width // N_MOD, c.n_classes) for m in MODALITIES})
+                               if c.unimodal_lambda > 0 else None)
 
     def forward(self, batch: FeatureBatch) -> ModelOutput:
+        return self.forward_with_unimodal(batch)[0]
+
+    def forward_with_unimodal(self, batch: FeatureBatch) -> tuple[ModelOutput, torch.Tensor | None]:
+        """:meth:`forward` and the (B, M, K) class scores of the per-modality auxiliary heads
+        (``TouchFormerConfig.unimodal_lambda``; None without them), which only the training loss reads."""
         c = self.config
         valid = {m: ~batch.padding[m] for m in MODALITIES}  # (B, T_m) each
         present = batch.present_matrix()  # (B, M)
@@ -490,14 +512,16 @@ class TouchFormer(nn.Module):
         z_intra = {m: self.intra[m](z_tilde[m], valid[m]) for m in MODALITIES}  # (B, T_m, d) each
 
         # 5. pooling, alpha-weighted concat (eq. 12), heads
-        pooled = torch.cat([a[m].squeeze(-1) * self._pool(z_intra[m], valid[m]) for m in MODALITIES],
-                           dim=1)  # (B, M d), (B, 2 M d) with max_pool
+        own = {m: self._pool(z_intra[m], valid[m]) for m in MODALITIES}  # (B, d) each, (B, 2 d) with max_pool
+        pooled = torch.cat([a[m].squeeze(-1) * own[m] for m in MODALITIES], dim=1)  # (B, M d), (B, 2 M d)
         h = self.head_drop(pooled)  # (B, width)
         if self.head_mlp is not None:
             h = h + self.head_mlp(h)  # (B, width), MulT's residual projection
         logits = self.classifier(h)  # (B, K)
         embedding = F.normalize(self.embedding_head(h), dim=-1)  # (B, E)
-        return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas)
+        unimodal = (torch.stack([self.unimodal_heads[m](own[m]) for m in MODALITIES], dim=1)  # (B, M, K)
+                    if self.unimodal_heads is not None else None)
+        return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas), unimodal
 
     def _pool(self, z: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """Step 5's pooling of one modality: (B, T, d) -> (B, d), or (B, 2 d) with ``max_pool``."""

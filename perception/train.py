@@ -43,7 +43,7 @@ from perception.checkpoint import (WEIGHTS_FILE, config_from_dict, config_to_dic
 from perception.dataset import TASKS, labels_of, sha256_file
 from perception.features import (FeatureBatch, FeatureConfig, NormStats, StrokeFeatures, collate, feature_dims,
                                  featurize, fit_norm_stats, keep_modalities, normalize)
-from perception.losses import total_loss
+from perception.losses import total_loss, unimodal_cross_entropy
 from perception.streams import MODALITIES, StrokeRecord
 
 RESUME_DIR = "resume"
@@ -557,14 +557,18 @@ def _trained_config(config: TrainConfig) -> dict[str, Any]:
 def run_identity(config: TrainConfig, n_classes: int) -> dict[str, Any]:
     """What a run of ``config`` is, apart from its strokes: the trained settings (:func:`_trained_config`) and
     the model config it builds (the registry's defaults with the run's overrides, so a changed model default
-    tells two runs apart), as JSON data. The evaluation's run store names outcomes by it
+    tells two runs apart; fields in the config class's ``IDENTITY_OMITS`` left out at the value given there),
+    as JSON data. The evaluation's run store names outcomes by it
     (:mod:`perception.run_store`)."""
     config_cls = MODEL_REGISTRY[config.model][0]
     in_dims = tuple(feature_dims(config.feature_config)[m] for m in MODALITIES)
     overrides = {k: _tuplify(v) for k, v in config.model_overrides}
     model_config = config_cls(in_dims=in_dims, n_classes=n_classes, **overrides)
-    return {"config": _trained_config(config), "model_config": _model_config_json(config_cls,
-                                                                                   config_to_dict(model_config))}
+    model_json = _model_config_json(config_cls, config_to_dict(model_config))
+    for name, value in getattr(config_cls, "IDENTITY_OMITS", {}).items():
+        if model_json.get(name) == value:
+            del model_json[name]  # a field added since the runs were stored, at what they did
+    return {"config": _trained_config(config), "model_config": model_json}
 
 
 def _set_aside(out_dir: Path) -> Path:
@@ -746,16 +750,21 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             batch = add_feature_noise(batch, config.feature_noise_std, gen)
             batch = drop_modalities(batch, config.modality_dropout, gen)
             batch = corrupt_batch(batch, config.corruption_ratio, config.corruption_std, gen).to(device)
-            out = model(batch)
+            out, unimodal = (model.forward_with_unimodal(batch) if getattr(model, "unimodal_heads", None) is not None
+                             else (model(batch), None))
             terms = total_loss(out.logits, out.embedding, batch.labels, model_config.cer_lambda, model_config.cer_tau,
                                label_smoothing=config.label_smoothing)
+            loss = terms.total
+            if unimodal is not None:
+                loss = loss + model_config.unimodal_lambda * unimodal_cross_entropy(unimodal, batch.labels,
+                                                                                    batch.present_matrix())
             optimizer.zero_grad(set_to_none=True)
-            terms.total.backward()
+            loss.backward()
             if config.grad_clip > 0:
                 nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             optimizer.step()
             k = len(idx)
-            sums["loss"] += float(terms.total.detach()) * k
+            sums["loss"] += float(loss.detach()) * k
             sums["ce"] += float(terms.ce.detach()) * k
             sums["contrastive"] += float(terms.contrastive.detach()) * k
             sums["correct"] += float((out.logits.argmax(dim=1) == batch.labels).sum())

@@ -9,7 +9,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from perception.losses import cross_instance_contrastive_loss, total_loss
+from perception.losses import cross_instance_contrastive_loss, total_loss, unimodal_cross_entropy
 
 torch.set_num_threads(2)
 
@@ -94,3 +94,21 @@ def test_total_loss_combines_terms():
     smooth = total_loss(logits, emb, y, cer_lambda=0.0, cer_tau=0.2, label_smoothing=0.1)
     uniform = -F.log_softmax(logits, dim=1).mean(dim=1).mean()  # cross-entropy against the uniform target
     assert smooth.ce.item() == pytest.approx(0.9 * off.ce.item() + 0.1 * uniform.item(), rel=1e-6)
+
+
+def test_unimodal_cross_entropy_averages_present_modalities_only():
+    gen = torch.Generator().manual_seed(4)
+    logits = torch.randn(3, 4, 5, generator=gen)  # (B, M, K)
+    y = torch.tensor([0, 3, 4])
+    present = torch.tensor([[True, False, True, True], [False, False, False, True], [True, True, True, True]])
+    pairs = [F.cross_entropy(logits[b, m][None], y[b][None]).item()
+             for b in range(3) for m in range(4) if present[b, m]]
+    assert unimodal_cross_entropy(logits, y, present).item() == pytest.approx(float(np.mean(pairs)), rel=1e-6)
+    # a missing modality's scores do not matter, however wrong they are
+    wrong = logits.clone()
+    wrong[0, 1] = 1e4 * F.one_hot(torch.tensor(1), 5)
+    assert unimodal_cross_entropy(wrong, y, present).item() == pytest.approx(float(np.mean(pairs)), rel=1e-6)
+    none = unimodal_cross_entropy(logits.requires_grad_(), y, torch.zeros(3, 4, dtype=torch.bool))
+    assert none.item() == 0.0
+    none.backward()
+    assert torch.isfinite(logits.grad).all()

@@ -299,6 +299,34 @@ def test_config_validation():
         tiny_config(stem_dilations=(1, 0))
     with pytest.raises(ValueError, match="residual_base"):
         tiny_config(residual_base="none")
+    with pytest.raises(ValueError, match="unimodal_lambda"):
+        tiny_config(unimodal_lambda=-0.5)
+
+
+def test_unimodal_heads_add_a_training_signal_and_leave_the_prediction_alone():
+    # unimodal_lambda > 0 adds one linear head per sensor on its own pooled feature; the model's logits,
+    # embedding and weights are those of the same network without the heads, and each head's gradient
+    # reaches its own sensor's branch
+    torch.manual_seed(7)
+    plain = TouchFormer(tiny_config()).eval()
+    torch.manual_seed(7)
+    aux = TouchFormer(tiny_config(unimodal_lambda=1.0)).eval()
+    assert plain.unimodal_heads is None and set(aux.unimodal_heads) == set(MODALITIES)
+    batch = make_batch(seed=20, p_missing=0.3)
+    with torch.no_grad():
+        ref, (out, heads) = plain(batch), aux.forward_with_unimodal(batch)
+    assert plain.forward_with_unimodal(batch)[1] is None
+    for name in ModelOutput._fields:
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name))
+        torch.testing.assert_close(getattr(aux(batch), name), getattr(ref, name))
+    assert heads.shape == (batch.labels.shape[0], len(MODALITIES), 3)
+    aux.train()
+    heads = aux.forward_with_unimodal(batch)[1]
+    heads[:, MODALITIES.index("friction")].sum().backward()
+    assert aux.unimodal_heads["friction"].weight.grad.abs().sum() > 0
+    sound_grad = aux.unimodal_heads["sound"].weight.grad
+    assert sound_grad is None or not sound_grad.any()
+    assert aux.intra["friction"].blocks[0].mlp.fc.weight.grad.abs().sum() > 0
 
 
 def test_residual_base_sets_how_much_of_its_own_stream_a_sensor_keeps():

@@ -16,7 +16,8 @@ from perception.features import collate, feature_dims, featurize
 from perception.baselines import build_model
 from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError, corrupt_batch,
                               cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
-                              predict, scheduled_lr, strokes_fingerprint, task_split, train, train_command)
+                              predict, run_identity, scheduled_lr, strokes_fingerprint, task_split, train,
+                              train_command)
 from tests.test_dataset import make_material_strokes
 
 TINY = {
@@ -486,3 +487,26 @@ def test_modalities_option_is_validated_and_old_configs_keep_all_four(tmp_path, 
     code = main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--modalities", "sound,smell"])
     err = capsys.readouterr().err
     assert code == 2 and "modalities must be distinct names" in err and len(err.strip().splitlines()) == 1
+
+
+def test_unimodal_heads_enter_the_training_loss_and_the_checkpoint(toy, tmp_path):
+    # the per-sensor heads' cross-entropy is part of the training loss (so it exceeds eq. 14's terms); the
+    # heads are saved with the rest, and the checkpoint loads with them
+    overrides = TINY["touchformer"] + (("unimodal_lambda", 1.0),)
+    result = _fit(toy, _config(model_overrides=overrides), tmp_path / "uni")
+    first = result.history[0]
+    assert first["train_loss"] > first["train_ce"] + 0.1 * first["train_contrastive"] + 0.5
+    assert result.history[-1]["train_loss"] < first["train_loss"]
+    assert load_checkpoint(result.checkpoint_dir).model.unimodal_heads is not None
+
+
+def test_run_identity_leaves_out_a_field_added_since_at_what_stored_runs_did():
+    # the run store names outcomes by run_identity: a field added later (unimodal_lambda) must not rename every
+    # stored run at its default, and must tell a run that sets it apart
+    base = _config()
+    plain = run_identity(base, 3)
+    assert "unimodal_lambda" not in plain["model_config"] and "final_norm" in plain["model_config"]
+    aux = run_identity(dataclasses.replace(base, model_overrides=base.model_overrides + (("unimodal_lambda", 1.0),)), 3)
+    assert aux["model_config"]["unimodal_lambda"] == 1.0
+    assert {**aux["model_config"], "unimodal_lambda": 0.0} != plain["model_config"]
+    assert {k: v for k, v in aux["model_config"].items() if k != "unimodal_lambda"} == plain["model_config"]
