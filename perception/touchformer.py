@@ -26,7 +26,8 @@ Choices the paper leaves open, made here:
 - ``stem_dilations`` (empty by default, the paper's single Conv1D) adds residual dilated Conv1D layers after
   step 1's Conv1D, as MTCNN's encoders have; an option for comparing per-sensor encoders, not the paper's.
 - ``unimodal_lambda`` (0 by default, not the paper's) adds a training-only head per modality on its own pooled
-  feature and their cross-entropy to the loss; the prediction does not use them (:meth:`TouchFormer.forward`).
+  feature (step 5's, or with ``unimodal_at="embedding"`` step 1's, before any other sensor is mixed in) and
+  their cross-entropy to the loss; the prediction does not use them (:meth:`TouchFormer.forward`).
 - Eqs. 1-2 apply W1 to X_m (T_m x d) and yield one g_m; where the time axis is pooled is not said. By default
   the gate takes the masked mean of X_m; ``gate_pool="hidden"`` pools H_m after the ReLU instead.
 - ``gate_temperature`` divides the gates before eq. 3's softmax: 0.2 by default instead of the paper's implicit
@@ -61,6 +62,7 @@ from perception.streams import MODALITIES
 N_MOD = len(MODALITIES)
 GATE_POOLS = ("input", "hidden")
 RESIDUAL_BASES = ("gated", "plain")
+UNIMODAL_AT = ("pooled", "embedding")
 
 
 @dataclass(frozen=True)
@@ -119,13 +121,16 @@ class TouchFormerConfig:
             heads over the present modalities is added to eq. 14's loss with this weight (deep supervision of
             each sensor's branch, against one sensor's gradient drowning the others'). The heads are used in
             training only; the model's prediction is unchanged. 0 (the default) builds no heads.
+        unimodal_at: what the heads of ``unimodal_lambda`` read: "pooled" (default), step 5's pooled feature,
+            which the cross-attention of step 3 has already mixed with the other sensors; "embedding", the
+            masked mean of step 1's Conv1D output X_m (after ``stem_dilations``), the sensor's own evidence alone.
     """
 
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"final_norm": True}
     """Fields added after configs were first saved whose value in such a saved config is not the default:
     a checkpoint or run written before ``final_norm`` existed has the closing LayerNorm."""
 
-    IDENTITY_OMITS: ClassVar[dict[str, Any]] = {"unimodal_lambda": 0.0}
+    IDENTITY_OMITS: ClassVar[dict[str, Any]] = {"unimodal_lambda": 0.0, "unimodal_at": "pooled"}
     """Fields added after the evaluation's runs were stored, with the value that does what those runs did: a run
     identity (:func:`perception.train.run_identity`) leaves such a field out at that value, so the stored runs
     stay the runs the current code would train."""
@@ -154,6 +159,7 @@ class TouchFormerConfig:
     final_norm: bool = False
     residual_base: str = "gated"
     unimodal_lambda: float = 0.0
+    unimodal_at: str = "pooled"
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -180,6 +186,8 @@ class TouchFormerConfig:
             raise ValueError(f"gate_pool must be one of {GATE_POOLS}, got {self.gate_pool!r}")
         if not (isinstance(self.unimodal_lambda, (int, float)) and self.unimodal_lambda >= 0):
             raise ValueError(f"unimodal_lambda must be a number >= 0, got {self.unimodal_lambda!r}")
+        if self.unimodal_at not in UNIMODAL_AT:
+            raise ValueError(f"unimodal_at must be one of {UNIMODAL_AT}, got {self.unimodal_at!r}")
         if self.residual_base not in RESIDUAL_BASES:
             raise ValueError(f"residual_base must be one of {RESIDUAL_BASES}, got {self.residual_base!r}")
 
@@ -468,7 +476,8 @@ class TouchFormer(nn.Module):
                                        nn.Linear(width, width)) if c.head_mlp else None)
         self.classifier = nn.Linear(width, c.n_classes)
         self.embedding_head = nn.Linear(width, c.emb_dim)
-        self.unimodal_heads = (nn.ModuleDict({m: nn.Linear(width // N_MOD, c.n_classes) for m in MODALITIES})
+        head_in = c.d_model if c.unimodal_at == "embedding" else width // N_MOD
+        self.unimodal_heads = (nn.ModuleDict({m: nn.Linear(head_in, c.n_classes) for m in MODALITIES})
                                if c.unimodal_lambda > 0 else None)
 
     def forward(self, batch: FeatureBatch) -> ModelOutput:
@@ -519,8 +528,11 @@ class TouchFormer(nn.Module):
             h = h + self.head_mlp(h)  # (B, width), MulT's residual projection
         logits = self.classifier(h)  # (B, K)
         embedding = F.normalize(self.embedding_head(h), dim=-1)  # (B, E)
-        unimodal = (torch.stack([self.unimodal_heads[m](own[m]) for m in MODALITIES], dim=1)  # (B, M, K)
-                    if self.unimodal_heads is not None else None)
+        unimodal = None
+        if self.unimodal_heads is not None:
+            read = ({m: masked_mean(x_hat[m], valid[m]) for m in MODALITIES} if c.unimodal_at == "embedding"
+                    else own)  # (B, d) or (B, width / M) each
+            unimodal = torch.stack([self.unimodal_heads[m](read[m]) for m in MODALITIES], dim=1)  # (B, M, K)
         return ModelOutput(logits=logits, embedding=embedding, gates=gates, alphas=alphas), unimodal
 
     def _pool(self, z: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

@@ -301,6 +301,8 @@ def test_config_validation():
         tiny_config(residual_base="none")
     with pytest.raises(ValueError, match="unimodal_lambda"):
         tiny_config(unimodal_lambda=-0.5)
+    with pytest.raises(ValueError, match="unimodal_at"):
+        tiny_config(unimodal_lambda=1.0, unimodal_at="fused")
 
 
 def test_unimodal_heads_add_a_training_signal_and_leave_the_prediction_alone():
@@ -367,3 +369,18 @@ def test_tiny_touchformer_learns_held_out():
     model = TouchFormer(tiny_config())
     acc = train_and_score(model, train, test, epochs=8, cer_lambda=0.1)
     assert acc >= 0.8, acc  # chance is 1/3
+
+
+def test_embedding_heads_see_their_own_sensor_only():
+    # unimodal_at="embedding": a head reads step 1's features of its sensor, before the cross-attention, so
+    # changing another sensor's stream leaves it unchanged; the "pooled" heads read features mixed with it
+    batch = make_batch(seed=21)
+    other = FeatureBatch(x={**batch.x, "sound": batch.x["sound"] + 3.0}, padding=batch.padding,
+                         present=batch.present, labels=batch.labels)
+    friction = MODALITIES.index("friction")
+    for at, unchanged in (("embedding", True), ("pooled", False)):
+        torch.manual_seed(8)
+        model = TouchFormer(tiny_config(unimodal_lambda=1.0, unimodal_at=at)).eval()
+        with torch.no_grad():
+            a, b = model.forward_with_unimodal(batch)[1], model.forward_with_unimodal(other)[1]
+        assert torch.allclose(a[:, friction], b[:, friction], atol=1e-6) == unchanged, at
