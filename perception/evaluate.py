@@ -61,6 +61,7 @@ from perception.checkpoint import load_checkpoint
 from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ssmc_split, usmc_folds,
                                 validation_split)
 from perception.features import feature_dims, keep_modalities
+from perception.numerics import numeric_environment, numerics_differences
 from perception.probes import ALTERATIONS, alter, swap_summaries
 from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
 from perception.run_store import RunStore, decode_array, encode_array, indices_sha256, outcome_id
@@ -94,6 +95,9 @@ PAPER: dict[str, Any] = {
     "robustness": "figure only: TouchFormer's accuracy stays above the baselines' for p in 0.0 ... 1.0",
 }
 """The paper's figures (from /work/shared/reference/paper-facts.md), printed beside ours in REPORT.md."""
+
+EVALUATION_PACKAGES = ("numpy", "scipy", "scikit-learn", "torch")
+"""The installed packages whose numerics featurising, training and scoring depend on (distribution names)."""
 
 OUTCOMES_FILE = "outcomes.jsonl"
 """The run store in the report folder (:mod:`perception.run_store`): every network run's test predictions."""
@@ -933,6 +937,8 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
              f"`{prov['data_manifest_sha256']}`",
              *([f"- fire data: `{prov['fire_dir']}`, manifest sha256 `{prov['fire_manifest_sha256']}`"]
                if prov.get("fire_dir") else []),
+             *([f"- numerics of this command (`perception/numerics.py`; a run is bit for bit the same only where they "
+                f"agree): {_numerics_line(prov['numerics'])}"] if prov.get("numerics") else []),
              f"- seeds {cfg['seeds']}, USMC {cfg['n_folds']} folds, {cfg['train']['epochs']} epochs, batch "
              f"{cfg['train']['batch_size']}, {cfg['train']['optimizer']} lr {cfg['train']['lr']} wd "
              f"{cfg['train']['weight_decay']} ({cfg['train']['schedule']}), device {prov['device']}, quick={prov['quick']}",
@@ -1159,7 +1165,8 @@ def evaluation_status(data_dir: str | os.PathLike, out_dir: str | os.PathLike,
     runs the run store in ``out_dir`` holds (:func:`_outcome_id`, as :func:`evaluate` names them). Nothing is
     featurised, trained or written. The reference classifier is not counted: it is fitted afresh each time, in
     seconds. A run of two experiments (Table 1's SSMC runs are the robustness curve's p = 0) counts in the
-    first."""
+    first. ``data`` says for each data set whether its strokes are those the stored runs were trained on
+    (:func:`kept_manifest_match`)."""
     cfg = config or EvalConfig()
     out_dir = Path(out_dir)
     ctx = _Context(data=load_dataset(data_dir), out_dir=out_dir, config=cfg, features=[],
@@ -1181,7 +1188,10 @@ def evaluation_status(data_dir: str | os.PathLike, out_dir: str | os.PathLike,
         counted |= ids
         experiments[name] = {"stored": len(ids & stored), "runs": len(ids)}
     status = {"store": str(out_dir / OUTCOMES_FILE), "stored": len(counted & stored), "runs": len(counted),
-              "experiments": experiments}
+              "experiments": experiments,
+              "data": {"clean": kept_manifest_match(ctx.data, out_dir, "clean")}}
+    if ctx.fire is not None:
+        status["data"]["fire"] = kept_manifest_match(ctx.fire.data, out_dir, "fire")
     if ctx.fire is not None and cfg.robustness_fire and rob:  # scores of stored runs, no training of their own
         ids = {_zero_shot_id(ctx, job) for job in rob}
         status["robustness_fire_scores"] = {"stored": len(ids & stored), "scores": len(ids)}
@@ -1228,7 +1238,8 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
                   "data_dir": str(data_dir), "data_manifest_sha256": data.manifest_sha256, "data_env": data.env,
                   "n_strokes": len(records), "n_categories": len({r.category for r in records}),
                   "n_instances": len({r.instance for r in records}), "seeds": list(cfg.seeds), "quick": quick,
-                  "device": str(resolve_device(cfg.train.device)), "python": sys.version.split()[0]}
+                  "device": str(resolve_device(cfg.train.device)), "python": sys.version.split()[0],
+                  "numerics": _numerics()}
     features = featurize_records(records, cfg.train.feature_config, progress, "featurize clean")
     summaries = np.stack([summary_features(r) for r in records])
     ctx = _Context(data=data, out_dir=out_dir, config=cfg, features=features, summaries=summaries, progress=progress,
@@ -1379,6 +1390,55 @@ def _keep_manifest(data: Dataset, out_dir: Path, name: str) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}-{_strokes_id(data)[:12]}.json"
     path.write_text(json.dumps(data.manifest, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+
+
+def _numerics() -> dict[str, Any]:
+    """:func:`perception.numerics.numeric_environment` for featurising, training and scoring, with the CPU code
+    path torch chose (its kernels, like BLAS's, round by the CPU)."""
+    import torch
+
+    return {**numeric_environment(EVALUATION_PACKAGES), "torch_cpu_capability": torch.backends.cpu.get_cpu_capability()}
+
+
+def _numerics_line(numerics: Mapping[str, Any]) -> str:
+    """:func:`_numerics` in one line of the report's provenance."""
+    blas = ", ".join(f"{b['api']} {b['version']} ({b['architecture']} kernels)" for b in numerics.get("blas", []))
+    versions = ", ".join(f"{name} {v}" for name, v in (numerics.get("packages") or {}).items() if v is not None)
+    env = "".join(f", {k}={v}" for k, v in (numerics.get("env") or {}).items())
+    return (f"{numerics.get('cpu')} ({numerics.get('machine')}), BLAS {blas or 'none loaded'}, torch CPU code path "
+            f"{numerics.get('torch_cpu_capability')}; {versions}{env}")
+
+
+def kept_manifest_match(data: Dataset, out_dir: str | os.PathLike, name: str) -> dict[str, Any]:
+    """Whether a data set's strokes are those of a manifest kept in ``out_dir/data_manifests/``
+    (:func:`_keep_manifest`), that is whether the stored runs trained on ``name`` data can be reused on it. When none matches: how many
+    shards differ from the closest kept manifest, and what differs in the numerics the two recordings record
+    (:mod:`perception.numerics`; an older manifest has none), so a recording made on another machine can be
+    told from one made by other code or options."""
+    strokes = _strokes_id(data)[:12]
+    folder = Path(out_dir) / "data_manifests"
+    if (folder / f"{name}-{strokes}.json").is_file():
+        return {"strokes": strokes, "kept": True}
+    here = {str(s.get("file")): s.get("sha256") for s in data.manifest.get("shards") or []}
+    best: tuple[int, str, dict[str, Any]] | None = None
+    for path in sorted(folder.glob(f"{name}-*.json")):
+        try:
+            kept = json.loads(path.read_text(encoding="utf-8"))
+            there = {str(s.get("file")): s.get("sha256") for s in kept.get("shards") or []}
+        except (OSError, ValueError, AttributeError):
+            continue  # not a manifest: nothing to compare with
+        differing = sum(here.get(f) != sha for f, sha in there.items()) + len(set(here) - set(there))
+        if best is None or differing < best[0]:
+            best = (differing, path.name, kept)
+    if best is None:
+        return {"strokes": strokes, "kept": False}
+    differing, kept_name, kept = best
+    same_recorder = (data.manifest.get("recorder_sha256") == kept.get("recorder_sha256")
+                     and data.manifest.get("config") == kept.get("config"))
+    return {"strokes": strokes, "kept": False, "closest": kept_name, "differing_shards": differing,
+            "shards": len(here), "same_code_and_options": same_recorder,
+            "numerics_changed": numerics_differences(data.manifest.get("numerics"), kept.get("numerics"),
+                                                     results_only=True)}
 
 
 def _json_default(value: Any) -> Any:

@@ -152,7 +152,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.status:
         config = command_config(args.quick, not args.no_ablation, not args.no_robustness, args.corruption_stds,
                                 args.seeds, single_sensor=not args.no_single_sensor)
-        print(json.dumps(evaluation_status(args.data, args.out, fire_dir=args.fire, config=config), indent=2))
+        status = evaluation_status(args.data, args.out, fire_dir=args.fire, config=config)
+        print(json.dumps(status, indent=2))
+        for name, match in status["data"].items():
+            if not match["kept"] and "closest" in match:
+                print(f"note: the {name} data set is not the one the stored runs were trained on: "
+                      f"{match['differing_shards']} of {match['shards']} shards differ from {match['closest']} "
+                      f"({'same' if match['same_code_and_options'] else 'other'} recorder code and options; numerics "
+                      f"changed: {'; '.join(match['numerics_changed']) or 'none'}); see perception/numerics.py",
+                      file=sys.stderr)
         return 0
     _output_folder(args.out, "--out")
     summary = evaluate_command(args.data, args.out, quick=args.quick, fire_dir=args.fire, device=args.device,

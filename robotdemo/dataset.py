@@ -9,7 +9,7 @@ skips shards already written (each is written atomically, then recorded in the m
 Layout (read by :func:`perception.dataset.load_dataset`)::
 
     DIR/manifest.json      {"format": "robotdemo-dataset", "version": 1, "env", "seed", "config",
-                            "recorder_sha256", "complete", "expected_shards",
+                            "recorder_sha256", "numerics", "complete", "expected_shards",
                             "shards": [{"file", "n_strokes", "sha256", "instance", "failed_strokes",
                                         "failed_attempts": {reason: count}}]}
     DIR/shards/shard-00007-oak.npz   (perception.recording_io stroke file)
@@ -37,6 +37,7 @@ from controllers.trajectory import TrajectoryError
 from perception.atomic import atomic_write_json
 from perception.contact_trace import ObjectInfo
 from perception.materials import Material, MaterialCatalogue, contact_dynamics, default_catalogue, sample_material
+from perception.numerics import numeric_environment, numerics_differences
 from perception.recording_io import write_strokes
 from perception.streams import StrokeRecord
 from perception.tactile import ENVIRONMENTS, emulate_stroke
@@ -275,7 +276,8 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
     (out / "shards").mkdir(parents=True, exist_ok=True)
     manifest_path = out / "manifest.json"
     manifest = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "env": config.env, "seed": config.seed,
-                "config": asdict(config), "recorder_sha256": recorder_fingerprint(), "complete": False,
+                "config": asdict(config), "recorder_sha256": recorder_fingerprint(),
+                "numerics": numeric_environment(RECORDER_LIBRARIES), "complete": False,
                 "expected_shards": len(jobs), "shards": []}
     if manifest_path.is_file():
         try:
@@ -294,6 +296,12 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
             raise RobotDemoError(f"{manifest_path}: recorded by other code (the sensor models, simulator or "
                                  "controllers differ, see RECORDER_SOURCES); its shards would not match new ones: "
                                  "use another --out, or move the folder away to start over")
+        changed = numerics_differences(manifest["numerics"], previous.get("numerics"), results_only=True)
+        if "numerics" in previous and changed:
+            raise RobotDemoError(f"{manifest_path}: its shards were recorded with other numerics "
+                                 f"({'; '.join(changed)}); new ones would not match them bit for bit: use another "
+                                 "--out, or record where they were recorded (perception/numerics.py says how to "
+                                 "choose the BLAS kernels)")
         planned = {job.file for job in jobs}  # a shard no current job writes (an older layout) is not kept
         manifest["shards"] = [s for s in previous.get("shards", []) if s["file"] in planned
                               and (out / s["file"]).is_file() and _sha256(out / s["file"]) == s["sha256"]]

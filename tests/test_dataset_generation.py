@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from perception.dataset import DatasetError, load_dataset
+from perception.numerics import numeric_environment
 from perception.recording_io import read_strokes
 from robotdemo import dataset
 from robotdemo.cli import main
@@ -99,6 +100,23 @@ def test_a_folder_recorded_by_other_code_is_not_resumed(one_worker, tmp_path, mo
     monkeypatch.setattr(dataset, "recorder_fingerprint", lambda: "0" * 64)  # as after a change to a sensor model
     with pytest.raises(RobotDemoError, match="recorded by other code"):
         generate_dataset(tmp_path / "old", DatasetConfig(**FAST), workers=1, progress=False)
+
+
+def test_a_folder_recorded_with_other_numerics_is_not_resumed(one_worker, tmp_path):
+    out, manifest = one_worker
+    assert manifest["numerics"] == numeric_environment(dataset.RECORDER_LIBRARIES)  # what the strokes depend on
+    shutil.copytree(out, tmp_path / "elsewhere")
+    path = tmp_path / "elsewhere" / "manifest.json"
+    recorded = json.loads(path.read_text())
+    recorded["numerics"]["cpu"] = "another CPU"  # another CPU with the same BLAS kernels resumes
+    path.write_text(json.dumps(recorded))
+    assert generate_dataset(tmp_path / "elsewhere", DatasetConfig(**FAST), workers=1, progress=False)["complete"]
+    recorded["numerics"]["blas"][0]["architecture"] = "SomeOtherCore"  # as on a machine whose BLAS sums otherwise
+    path.write_text(json.dumps(recorded))
+    other = r"recorded with other numerics \(BLAS kernels [^)]*SomeOtherCore[^)]* -> "
+    with pytest.raises(RobotDemoError, match=other):
+        generate_dataset(tmp_path / "elsewhere", DatasetConfig(**FAST), workers=1, progress=False)
+    assert json.loads(path.read_text()) == recorded  # nothing written
 
 
 def test_cli_unknown_instance_is_one_line(tmp_path, capsys):

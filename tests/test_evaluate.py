@@ -436,10 +436,13 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     # touchformer_mag on the 4, the fire shift's 3 runs, lstm on each sensor, lstm at p = 1 (p = 0 is Table 1's)
     runs = {"table1": 8, "ablation": 4, "fire": 3, "single_sensor": 4, "robustness": 1}
     # and the robustness curve's two runs (p = 0 and 1) scored on fire strokes
-    assert status() == {"store": str(out / OUTCOMES_FILE), "stored": 0, "runs": 20,
-                        "experiments": {name: {"stored": 0, "runs": n} for name, n in runs.items()},
-                        "robustness_fire_scores": {"stored": 0, "scores": 2}}
+    before = status()
+    assert {name: match["kept"] for name, match in before.pop("data").items()} == {"clean": False, "fire": False}
+    assert before == {"store": str(out / OUTCOMES_FILE), "stored": 0, "runs": 20,
+                      "experiments": {name: {"stored": 0, "runs": n} for name, n in runs.items()},
+                      "robustness_fire_scores": {"stored": 0, "scores": 2}}
     first, outcomes = run()
+    assert {name: match["kept"] for name, match in status()["data"].items()} == {"clean": True, "fire": True}
     assert outcomes["read"] == outcomes["scored_here"] > 0 and outcomes["from_store"] == 0
     assert status()["experiments"] == {name: {"stored": n, "runs": n} for name, n in runs.items()}
     assert status()["robustness_fire_scores"] == {"stored": 2, "scores": 2}
@@ -456,6 +459,7 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     manifest = json.loads((tmp_path / "clean" / "manifest.json").read_text())
     manifest["recorder_sha256"] = "0" * 64  # the same strokes, recorded by code changed elsewhere
     (tmp_path / "clean" / "manifest.json").write_text(json.dumps(manifest))
+    assert status()["data"]["clean"]["kept"]  # the strokes are the stored runs' strokes
     second, outcomes = run(workers=1)
     assert not (out / "runs").exists()  # nothing trained: every outcome came from the store
     assert len(list((out / "data_manifests").glob("clean-*.json"))) == 1  # same strokes, same name
@@ -487,3 +491,33 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     fewer = dataclasses.replace(config, train=dataclasses.replace(config.train, epochs=1))
     _, outcomes = run(fewer)
     assert outcomes["from_store"] == 0
+
+
+def test_status_tells_a_recording_made_with_other_numerics_from_one_made_by_other_code(tmp_path):
+    from types import SimpleNamespace
+
+    from perception.evaluate import _keep_manifest, kept_manifest_match
+
+    numerics = {"machine": "x86_64", "cpu": "Intel Xeon", "packages": {"numpy": "2.4.6"},
+                "blas": [{"api": "openblas", "version": "0.3.31", "architecture": "SkylakeX"}], "env": {}}
+    manifest = {"recorder_sha256": "a" * 64, "config": {"seed": 1}, "numerics": numerics,
+                "shards": [{"file": f"shards/shard-{i:05d}.npz", "sha256": str(i) * 64} for i in range(3)]}
+    _keep_manifest(SimpleNamespace(manifest=manifest), tmp_path, "clean")  # what the stored runs trained on
+    assert kept_manifest_match(SimpleNamespace(manifest=manifest), tmp_path, "clean")["kept"]
+
+    elsewhere = json.loads(json.dumps(manifest))  # recorded again on a machine whose BLAS sums otherwise
+    elsewhere["numerics"].update(cpu="AMD EPYC", blas=[{**numerics["blas"][0], "architecture": "Haswell"}])
+    elsewhere["shards"][1]["sha256"] = "f" * 64
+    match = kept_manifest_match(SimpleNamespace(manifest=elsewhere), tmp_path, "clean")
+    [kept] = (tmp_path / "data_manifests").glob("clean-*.json")
+    assert match == {"strokes": match["strokes"], "kept": False, "closest": kept.name,
+                     "differing_shards": 1, "shards": 3, "same_code_and_options": True,
+                     "numerics_changed": ["BLAS kernels openblas SkylakeX -> openblas Haswell"]}
+
+    edited = json.loads(json.dumps(elsewhere))  # the same machine, other recorder code; an old manifest
+    edited["recorder_sha256"] = "b" * 64
+    del edited["numerics"]
+    match = kept_manifest_match(SimpleNamespace(manifest=edited), tmp_path, "clean")
+    assert (match["same_code_and_options"], match["numerics_changed"]) == (False, ["not recorded"])
+    assert kept_manifest_match(SimpleNamespace(manifest=edited), tmp_path, "fire") == {
+        "strokes": match["strokes"], "kept": False}  # nothing kept under that name to compare with
