@@ -1411,10 +1411,10 @@ def _numerics_line(numerics: Mapping[str, Any]) -> str:
 
 def kept_manifest_match(data: Dataset, out_dir: str | os.PathLike, name: str) -> dict[str, Any]:
     """Whether a data set's strokes are those of a manifest kept in ``out_dir/data_manifests/``
-    (:func:`_keep_manifest`), that is whether the stored runs trained on ``name`` data can be reused on it. When none matches: how many
-    shards differ from the closest kept manifest, and what differs in the numerics the two recordings record
-    (:mod:`perception.numerics`; an older manifest has none), so a recording made on another machine can be
-    told from one made by other code or options."""
+    (:func:`_keep_manifest`), that is whether the stored runs trained on ``name`` data can be reused on it.
+    When none matches: how many shards differ from the closest kept manifest, and what differs in the numerics
+    the two recordings record (:mod:`perception.numerics`; an older manifest has none), so a recording made on
+    another machine can be told from one made by other code or options."""
     strokes = _strokes_id(data)[:12]
     folder = Path(out_dir) / "data_manifests"
     if (folder / f"{name}-{strokes}.json").is_file():

@@ -296,8 +296,9 @@ def generate_dataset(out_dir: str | Path, config: DatasetConfig, workers: int = 
             raise RobotDemoError(f"{manifest_path}: recorded by other code (the sensor models, simulator or "
                                  "controllers differ, see RECORDER_SOURCES); its shards would not match new ones: "
                                  "use another --out, or move the folder away to start over")
-        changed = numerics_differences(manifest["numerics"], previous.get("numerics"), results_only=True)
-        if "numerics" in previous and changed:
+        # library versions already count in the fingerprint; what it cannot see is the BLAS kernels chosen here
+        if "numerics" in previous and (changed := numerics_differences(manifest["numerics"], previous["numerics"],
+                                                                       results_only=True)):
             raise RobotDemoError(f"{manifest_path}: its shards were recorded with other numerics "
                                  f"({'; '.join(changed)}); new ones would not match them bit for bit: use another "
                                  "--out, or record where they were recorded (perception/numerics.py says how to "
