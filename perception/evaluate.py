@@ -62,6 +62,7 @@ from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ss
                                 validation_split)
 from perception.features import feature_dims, keep_modalities
 from perception.numerics import numeric_environment, numerics_differences
+from perception.paired import paired_comparison
 from perception.probes import ALTERATIONS, alter, swap_summaries
 from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
 from perception.run_store import RunStore, decode_array, encode_array, indices_sha256, outcome_id
@@ -686,6 +687,17 @@ def _failed_runs(runs: Iterable[Mapping[str, Any]], out_dir: Path | None = None)
     return sorted(failed, key=lambda r: (r["task"], r["model"], r["checkpoint"]))
 
 
+def _paired(model_runs: Sequence[Mapping[str, Any]], baseline_runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """:func:`perception.paired.paired_comparison` of two models' Table-1 runs, split by split."""
+    for a, b in zip(model_runs, baseline_runs, strict=True):
+        if a["split"] != b["split"] or not np.array_equal(a["_y_true"], b["_y_true"]):
+            raise ValueError(f"{a['model']} and {b['model']} were not tested on the same strokes "
+                             f"({a['task']} {a['split']} against {b['split']})")
+    return paired_comparison([r["_y_true"] for r in model_runs], [r["_y_pred"] for r in model_runs],
+                             [r["_y_pred"] for r in baseline_runs], model=model_runs[0]["model"],
+                             baseline=baseline_runs[0]["model"]).to_dict()
+
+
 def _summary(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return {"accuracy": _mean_std([r["accuracy"] for r in runs]), "g_mean": _mean_std([r["g_mean"] for r in runs]),
             "runs": [_public(r) for r in runs]}
@@ -957,6 +969,24 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                 lines.append(f"| {TASK_LABEL[task]} | {model} (paper only) | - | - | {_paper(paper[0])} | "
                              f"{_paper(paper[1])} |")
     lines.append("")
+    if results.get("paired"):
+        lines += ["### TouchFormer against each model on the same test strokes", "",
+                  "Each seed's (fold's) test strokes are the same for every model, so the two can be compared stroke "
+                  "by stroke (`perception/paired.py`): the difference of the accuracies (mean over the runs, as "
+                  "above), its 95 % bootstrap interval over the test strokes (BCa, each run's strokes resampled on "
+                  "their own), the strokes only one of the two classifies right (over all runs) and McNemar's exact "
+                  "p on them. The interval holds the test split's sampling noise for these trained networks; how much "
+                  "a model moves when trained again is the ± std above.", "",
+                  "| task | against | TouchFormer - it [points] | 95 % interval | right for TouchFormer only / "
+                  "for it only | McNemar p | test strokes (runs) |", "|---|---|---|---|---|---|---|"]
+        for task, per_model in results["paired"].items():
+            for model, c in per_model.items():
+                low, high = c["ci95_points"]
+                lines.append(f"| {TASK_LABEL[task]} | {MODEL_LABEL.get(model, model)} | "
+                             f"{c['difference_points']:+.2f} | {low:+.2f} to {high:+.2f} | {c['model_only_right']} / "
+                             f"{c['baseline_only_right']} | {c['mcnemar_p']:.3g} | {c['n_strokes']} "
+                             f"({c['n_runs']}) |")
+        lines.append("")
 
     if results.get("missing_modality"):
         lines += ["## Missing modality (USMC, modality removed at test time)", "",
@@ -1275,6 +1305,9 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         per.setdefault((job.task, job.model), []).append(_run(ctx, job))
         bar.update()
     results["table1"] = {t: {m: _summary(per[(t, m)]) for m in cfg.models} for t in ("ssmc", "usmc", "fine")}
+    if "touchformer" in cfg.models:
+        results["paired"] = {t: {m: _paired(per[(t, "touchformer")], per[(t, m)]) for m in cfg.models
+                                 if m != "touchformer"} for t in ("ssmc", "usmc", "fine")}
     if cfg.missing_modality:
         results["missing_modality"] = {
             m: {**{d: _mean_std([r["missing"][d] for r in per[("usmc", m)]]) for d in MODALITIES},

@@ -76,6 +76,16 @@ def test_quick_evaluation_writes_report(tmp_path):
             acc = saved["table1"][task][model]["accuracy"]
             assert 0.0 <= acc["mean"] <= 1.0
         assert len(saved["table1"][task]["touchformer"]["runs"]) == (2 if task == "usmc" else 1)
+    for task in ("ssmc", "usmc", "fine"):  # TouchFormer against every other model on the same test strokes
+        assert set(saved["paired"][task]) == {"touchformer_soft", "lstm", "mtcnn", "reference"}
+        table = saved["table1"][task]
+        for model, c in saved["paired"][task].items():
+            assert c["difference_points"] == pytest.approx(
+                100 * (table["touchformer"]["accuracy"]["mean"] - table[model]["accuracy"]["mean"]))
+            assert c["n_strokes"] == sum(r["n_test"] for r in table[model]["runs"])
+            low, high = c["ci95_points"]
+            assert low <= c["difference_points"] <= high and 0.0 <= c["mcnemar_p"] <= 1.0
+    assert "### TouchFormer against each model on the same test strokes" in (out / "REPORT.md").read_text()
     assert set(saved["missing_modality"]["touchformer"]) == {"sound", "normal", "friction", "accel", "none"}
     assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer", "touchformer_soft"}
     weights = saved["modality_weights"]["usmc"]
