@@ -1261,7 +1261,6 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     data = load_dataset(data_dir)
-    _keep_manifest(data, out_dir, "clean")
     records = data.records
     provenance = {"command": command if command is not None else " ".join(sys.argv), "git_commit": _git_commit(),
                   "git_dirty": _git_dirty(),
@@ -1270,6 +1269,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
                   "n_instances": len({r.instance for r in records}), "seeds": list(cfg.seeds), "quick": quick,
                   "device": str(resolve_device(cfg.train.device)), "python": sys.version.split()[0],
                   "numerics": _numerics()}
+    _keep_manifest(data, out_dir, "clean")  # after git_dirty: the evaluation's own writes do not count as changes
     features = featurize_records(records, cfg.train.feature_config, progress, "featurize clean")
     summaries = np.stack([summary_features(r) for r in records])
     ctx = _Context(data=data, out_dir=out_dir, config=cfg, features=features, summaries=summaries, progress=progress,
