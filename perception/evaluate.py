@@ -5,7 +5,8 @@
 1. Table 1: SSMC (7:3 split by stroke, stratified by category), USMC (k-fold, test folds hold unseen
    instances), fine-grained (instance labels, 7:3 split stratified by instance); accuracy and G-mean, mean and
    std over seeds (SSMC, fine) or folds (USMC) for every model of ``models`` (default TouchFormer, LSTM,
-   MTCNN and the logistic-regression reference classifier).
+   MTCNN and the logistic-regression reference classifier), and TouchFormer against each of them on the same
+   test strokes (:mod:`perception.paired`: difference, bootstrap interval over the strokes, McNemar's test).
 2. Missing modality (USMC): the Table-1 USMC models tested with each modality removed (stream set missing
    at test time, as a dropped-out sensor; the models were trained on all four).
 3. Ablation: transformer fusion only / + MAG / + MAG + CER on the three tasks.
