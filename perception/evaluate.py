@@ -835,6 +835,20 @@ def _seed_wins(per_seed: Mapping[str, Mapping[str, Sequence[float]]], model: str
             for p, runs in per_seed[model].items()}
 
 
+def _paired_best_baseline(runs: Mapping[str, Mapping[str, Sequence[Mapping[str, Any]]]]) -> dict[str, Any]:
+    """Per corruption ratio: TouchFormer against the baseline (a model that is no TouchFormer variant) with the
+    higher mean accuracy there, stroke by stroke on the same test strokes (:func:`_paired`); {} without
+    TouchFormer or a baseline."""
+    baselines = [m for m in runs if not m.startswith("touchformer")]
+    if "touchformer" not in runs or not baselines:
+        return {}
+    out = {}
+    for p, tf_runs in runs["touchformer"].items():
+        best = max(baselines, key=lambda m: np.mean([r["accuracy"] for r in runs[m][p]]))
+        out[p] = _paired(tf_runs, runs[best][p])
+    return out
+
+
 def _fitting_summary(per: Mapping[tuple[str, str], Sequence[Mapping[str, Any]]], models: Sequence[str]
                      ) -> dict[str, dict[str, dict[str, float]]]:
     """Per task and model, over its runs: the best (chosen) epoch, the training accuracy of the last epoch, the
@@ -1052,7 +1066,20 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                     n = len(rob["seeds"])
                     lines.append(f"| seeds where TouchFormer is above every other model (of {n}) | " + " | ".join(
                         str(level["seed_wins"].get(p, "-")) for p in ps) + " |")
+                paired = level.get("paired_best_baseline") if table is level["curves"] else None
+                if paired:
+                    lines.append("| best baseline at this p | " + " | ".join(
+                        MODEL_LABEL.get(paired[p]["baseline"], paired[p]["baseline"]) if p in paired else "-"
+                        for p in ps) + " |")
+                    lines.append("| TouchFormer - it [points] (95 % interval over the test strokes) | " + " | ".join(
+                        f"{paired[p]['difference_points']:+.1f} ({paired[p]['ci95_points'][0]:+.1f}, "
+                        f"{paired[p]['ci95_points'][1]:+.1f})" if p in paired else "-" for p in ps) + " |")
                 lines.append("")
+        if any(level.get("paired_best_baseline") for level in rob["levels"]):
+            lines += ["The last two rows of each intensity's first table compare TouchFormer with the baseline that "
+                      "has the higher mean at that p, stroke by stroke on the same test strokes (as in Table 1's "
+                      "paired comparison): an interval that holds 0 is a difference the test split's draw could "
+                      "make.", ""]
         lines += [f"Paper: {PAPER['robustness']}.", ""]
         if rob.get("fire_zero_shot"):
             lines += _zero_shot_lines(rob)
@@ -1370,12 +1397,14 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     if rob:
         accuracy: dict[tuple[str, float, float | None], list[float]] = {}
         checkpoints: dict[tuple[str, float, float | None], list[str | None]] = {}
+        rob_runs: dict[tuple[str, float, float | None], list[dict[str, Any]]] = {}
         for job in rob:
             model, p, std = job.model, job.corruption, job.corruption_std
             bar.set_postfix_str(f"robustness {model} p={p} std={std:g} {job.split_name}")
             run = _run(ctx, job)
             accuracy.setdefault((model, p, _noise_std(p, std)), []).append(run["accuracy"])
             checkpoints.setdefault((model, p, _noise_std(p, std)), []).append(run.get("checkpoint"))
+            rob_runs.setdefault((model, p, _noise_std(p, std)), []).append(run)
             bar.update()
         levels = []
         for std in cfg.corruption_stds:
@@ -1383,6 +1412,9 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
                             for p in cfg.corruption_ratios} for m in cfg.robustness_models}
             levels.append({"corruption_std": std, **_curve_tables(per_seed),
                            "seed_wins": _seed_wins(per_seed, "touchformer"),
+                           "paired_best_baseline": _paired_best_baseline(
+                               {m: {repr(float(p)): rob_runs[(m, float(p), _noise_std(p, std))]
+                                    for p in cfg.corruption_ratios} for m in cfg.robustness_models}),
                            "checkpoints": {m: {repr(float(p)): checkpoints[(m, float(p), _noise_std(p, std))]
                                                for p in cfg.corruption_ratios} for m in cfg.robustness_models}})
         results["robustness"] = {"seeds": list(cfg.seeds), "corruption_stds": list(cfg.corruption_stds),

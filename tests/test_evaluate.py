@@ -86,6 +86,7 @@ def test_quick_evaluation_writes_report(tmp_path):
             low, high = c["ci95_points"]
             assert low <= c["difference_points"] <= high and 0.0 <= c["mcnemar_p"] <= 1.0
     assert "### TouchFormer against each model on the same test strokes" in (out / "REPORT.md").read_text()
+    assert "| TouchFormer - it [points] (95 % interval over the test strokes) |" in (out / "REPORT.md").read_text()
     assert set(saved["missing_modality"]["touchformer"]) == {"sound", "normal", "friction", "accel", "none"}
     assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer", "touchformer_soft"}
     weights = saved["modality_weights"]["usmc"]
@@ -111,6 +112,12 @@ def test_quick_evaluation_writes_report(tmp_path):
         # one seed: no sample std (it used to print a misleading "± 0.00")
         assert all(v != v for v in level["curves_std"]["touchformer"].values())
         assert set(level["seed_wins"]) == {"0.0", "0.5", "1.0"} and set(level["seed_wins"].values()) <= {0, 1}
+        for p, c in level["paired_best_baseline"].items():  # against the better of the LSTM and MTCNN at p
+            assert c["baseline"] in ("lstm", "mtcnn") and c["model"] == "touchformer"
+            best = max(level["curves"]["lstm"][p], level["curves"]["mtcnn"][p])
+            assert level["curves"][c["baseline"]][p] == pytest.approx(best)
+            assert c["difference_points"] == pytest.approx(100 * (level["curves"]["touchformer"][p] - best))
+        assert set(level["paired_best_baseline"]) == {"0.0", "0.5", "1.0"}
         assert all(Path(c[0]).is_dir() for c in level["checkpoints"]["touchformer"].values())
     assert "(n=1)" in (out / "REPORT.md").read_text()  # one SSMC seed in the quick run: no std to print
     # each run's checkpoint names the data it trained on, and the report counts the commits that trained them
