@@ -688,6 +688,15 @@ def _failed_runs(runs: Iterable[Mapping[str, Any]], out_dir: Path | None = None)
     return sorted(failed, key=lambda r: (r["task"], r["model"], r["checkpoint"]))
 
 
+def _category_recall(runs: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """Recall of every class over the test strokes of all ``runs`` pooled (sklearn's ``recall_score``)."""
+    names = runs[0]["_names"]
+    y_true = np.concatenate([r["_y_true"] for r in runs])
+    y_pred = np.concatenate([r["_y_pred"] for r in runs])
+    recalls = recall_score(y_true, y_pred, labels=range(len(names)), average=None, zero_division=0)
+    return {name: float(v) for name, v in zip(names, recalls)}
+
+
 def _paired(model_runs: Sequence[Mapping[str, Any]], baseline_runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """:func:`perception.paired.paired_comparison` of two models' Table-1 runs, split by split."""
     for a, b in zip(model_runs, baseline_runs, strict=True):
@@ -1003,6 +1012,19 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                              f"({c['n_runs']}) |")
         lines.append("")
 
+    if results.get("category_recall"):
+        lines += ["### Recall per category (test strokes of all seeds or folds pooled, %)", ""]
+        for task, per_model in results["category_recall"].items():
+            models = list(per_model)
+            categories = list(per_model[models[0]])
+            lines += [f"| {TASK_LABEL[task]} | " + " | ".join(MODEL_LABEL.get(m, m) for m in models) + " |",
+                      "|---|" + "---|" * len(models)]
+            for c in categories:
+                best = max(per_model[m][c] for m in models)
+                lines.append(f"| {c} | " + " | ".join(
+                    (f"**{100 * per_model[m][c]:.1f}**" if per_model[m][c] == best else f"{100 * per_model[m][c]:.1f}")
+                    for m in models) + " |")
+            lines.append("")
     if results.get("missing_modality"):
         lines += ["## Missing modality (USMC, modality removed at test time)", "",
                   "| model | " + " | ".join(f"no {MODALITY_SYMBOL[m]}" for m in MODALITIES) + " | all four |",
@@ -1333,6 +1355,7 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         per.setdefault((job.task, job.model), []).append(_run(ctx, job))
         bar.update()
     results["table1"] = {t: {m: _summary(per[(t, m)]) for m in cfg.models} for t in ("ssmc", "usmc", "fine")}
+    results["category_recall"] = {t: {m: _category_recall(per[(t, m)]) for m in cfg.models} for t in ("ssmc", "usmc")}
     if "touchformer" in cfg.models:
         results["paired"] = {t: {m: _paired(per[(t, "touchformer")], per[(t, m)]) for m in cfg.models
                                  if m != "touchformer"} for t in ("ssmc", "usmc", "fine")}

@@ -13,7 +13,7 @@ import torch
 
 from perception.checkpoint import load_checkpoint
 from perception.dataset import write_dataset
-from perception.evaluate import PAPER, evaluate, g_mean, quick_config
+from perception.evaluate import PAPER, _category_recall, evaluate, g_mean, quick_config
 from tests.test_dataset import make_material_strokes
 
 
@@ -87,6 +87,15 @@ def test_quick_evaluation_writes_report(tmp_path):
             assert low <= c["difference_points"] <= high and 0.0 <= c["mcnemar_p"] <= 1.0
     assert "### TouchFormer against each model on the same test strokes" in (out / "REPORT.md").read_text()
     assert "| TouchFormer - it [points] (95 % interval over the test strokes) |" in (out / "REPORT.md").read_text()
+    categories = {r.category for r in clean}
+    for task in ("ssmc", "usmc"):  # recall per category over the runs' test strokes pooled
+        for model, recall in saved["category_recall"][task].items():
+            assert set(recall) == categories and all(0.0 <= v <= 1.0 for v in recall.values())
+    for model, recall in saved["category_recall"]["usmc"].items():
+        # each toy USMC fold tests one instance of every category (6 strokes each): classes and folds are
+        # equal in size, so the mean recall is the mean fold accuracy
+        assert np.mean(list(recall.values())) == pytest.approx(saved["table1"]["usmc"][model]["accuracy"]["mean"])
+    assert "### Recall per category" in (out / "REPORT.md").read_text()
     assert set(saved["missing_modality"]["touchformer"]) == {"sound", "normal", "friction", "accel", "none"}
     assert set(saved["ablation"]) == {"touchformer_fusion", "touchformer_mag", "touchformer", "touchformer_soft"}
     weights = saved["modality_weights"]["usmc"]
@@ -538,3 +547,9 @@ def test_status_tells_a_recording_made_with_other_numerics_from_one_made_by_othe
     assert (match["same_code_and_options"], match["numerics_changed"]) == (False, ["not recorded"])
     assert kept_manifest_match(SimpleNamespace(manifest=edited), tmp_path, "fire") == {
         "strokes": match["strokes"], "kept": False}  # nothing kept under that name to compare with
+
+
+def test_category_recall_pools_the_runs_test_strokes():
+    runs = [{"_names": ("metal", "wood"), "_y_true": np.array([0, 0, 1]), "_y_pred": np.array([0, 1, 1])},
+            {"_names": ("metal", "wood"), "_y_true": np.array([0, 1]), "_y_pred": np.array([1, 0])}]
+    assert _category_recall(runs) == {"metal": pytest.approx(1 / 3), "wood": pytest.approx(1 / 2)}
