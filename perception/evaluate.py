@@ -1044,6 +1044,17 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                 f"{_pct(row[t])} ({_paper(PAPER['ablation'].get(model, {}).get(t, 'not in the paper'))})"
                 for t in ("ssmc", "usmc", "fine")) + " |")
         lines.append("")
+        if results.get("ablation_paired"):
+            lines += ["Each step against the one before it on the same test strokes (as Table 1's paired comparison):", "",
+                      "| step | task | difference [points] | 95 % interval | right for the step only / before it only "
+                      "| McNemar p |", "|---|---|---|---|---|---|"]
+            for c in results["ablation_paired"]:
+                low, high = c["ci95_points"]
+                lines.append(f"| {MODEL_LABEL.get(c['baseline'], c['baseline'])} -> "
+                             f"{MODEL_LABEL.get(c['model'], c['model'])} | {TASK_LABEL[c['task']]} | "
+                             f"{c['difference_points']:+.2f} | {low:+.2f} to {high:+.2f} | {c['model_only_right']} / "
+                             f"{c['baseline_only_right']} | {c['mcnemar_p']:.3g} |")
+            lines.append("")
         if "touchformer_soft" in results["ablation"]:
             lines += [f"'{MODEL_LABEL['touchformer_soft']}' is our variant, not the paper's: TouchFormer with "
                       "gate_th = 0, so the gates only weight the modalities and never drop one, and eq. 3's softmax "
@@ -1373,6 +1384,10 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
     if ablation:
         results["ablation"] = {m: {t: _mean_std([r["accuracy"] for r in per[(t, m)]]) for t in ("ssmc", "usmc", "fine")}
                                for m in ablation}
+        steps = [(a, b) for a, b in (("touchformer_mag", "touchformer_fusion"), ("touchformer", "touchformer_mag"))
+                 if a in ablation and b in ablation]  # what adding MAG, then CER, changes, stroke by stroke
+        results["ablation_paired"] = [{"task": t, **_paired(per[(t, a)], per[(t, b)])}
+                                      for a, b in steps for t in ("ssmc", "usmc", "fine")]
 
     variants = [m for m in dict.fromkeys(["touchformer"] + ablation) if ("ssmc", m) in per]
     results["modality_weights"] = {
