@@ -1045,7 +1045,8 @@ def _write_report(path: Path, results: Mapping[str, Any]) -> None:
                 for t in ("ssmc", "usmc", "fine")) + " |")
         lines.append("")
         if results.get("ablation_paired"):
-            lines += ["Each step against the one before it on the same test strokes (as Table 1's paired comparison):", "",
+            lines += ["Each step against the one before it on the same test strokes (as Table 1's paired "
+                      "comparison):", "",
                       "| step | task | difference [points] | 95 % interval | right for the step only / before it only "
                       "| McNemar p |", "|---|---|---|---|---|---|"]
             for c in results["ablation_paired"]:
