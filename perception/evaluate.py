@@ -1434,28 +1434,22 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         figures.append("training_curves.png")
 
     if rob:
-        accuracy: dict[tuple[str, float, float | None], list[float]] = {}
-        checkpoints: dict[tuple[str, float, float | None], list[str | None]] = {}
         rob_runs: dict[tuple[str, float, float | None], list[dict[str, Any]]] = {}
         for job in rob:
             model, p, std = job.model, job.corruption, job.corruption_std
             bar.set_postfix_str(f"robustness {model} p={p} std={std:g} {job.split_name}")
-            run = _run(ctx, job)
-            accuracy.setdefault((model, p, _noise_std(p, std)), []).append(run["accuracy"])
-            checkpoints.setdefault((model, p, _noise_std(p, std)), []).append(run.get("checkpoint"))
-            rob_runs.setdefault((model, p, _noise_std(p, std)), []).append(run)
+            rob_runs.setdefault((model, p, _noise_std(p, std)), []).append(_run(ctx, job))
             bar.update()
         levels = []
         for std in cfg.corruption_stds:
-            per_seed = {m: {repr(float(p)): accuracy[(m, float(p), _noise_std(p, std))]
-                            for p in cfg.corruption_ratios} for m in cfg.robustness_models}
+            runs = {m: {repr(float(p)): rob_runs[(m, float(p), _noise_std(p, std))] for p in cfg.corruption_ratios}
+                    for m in cfg.robustness_models}
+            per_seed = {m: {p: [r["accuracy"] for r in rs] for p, rs in by_p.items()} for m, by_p in runs.items()}
             levels.append({"corruption_std": std, **_curve_tables(per_seed),
                            "seed_wins": _seed_wins(per_seed, "touchformer"),
-                           "paired_best_baseline": _paired_best_baseline(
-                               {m: {repr(float(p)): rob_runs[(m, float(p), _noise_std(p, std))]
-                                    for p in cfg.corruption_ratios} for m in cfg.robustness_models}),
-                           "checkpoints": {m: {repr(float(p)): checkpoints[(m, float(p), _noise_std(p, std))]
-                                               for p in cfg.corruption_ratios} for m in cfg.robustness_models}})
+                           "paired_best_baseline": _paired_best_baseline(runs),
+                           "checkpoints": {m: {p: [r.get("checkpoint") for r in rs] for p, rs in by_p.items()}
+                                           for m, by_p in runs.items()}})
         results["robustness"] = {"seeds": list(cfg.seeds), "corruption_stds": list(cfg.corruption_stds),
                                  "levels": levels}
         _plot_robustness(out_dir / "robustness.png", levels)
