@@ -14,6 +14,8 @@ targets). Phases::
   the force exceeds ``contact_force_n`` an admittance law on the normal offset takes over (below) and the contact
   stiffness is estimated from (offset, force) pairs. PRESS ends when the force reaches the target.
 * SETTLE: admittance only, until the force stays within ``settle_tolerance`` of the target for ``settle_time_s``.
+  In contact during PRESS and SETTLE the pad also yields in the surface plane to the friction on it (lateral
+  admittance, below), so that it comes to the slide carrying no tangential load.
 * SLIDE: the contact point moves ``length_m`` along ``direction_rad`` with a jerk-limited profile whose cruise speed
   is ``speed_mps``, the admittance law still regulating the normal force.
 * LIFT: back up along the normal by ``approach_height_m`` (jerk-limited); then DONE, which holds the pose.
@@ -27,13 +29,23 @@ so the force loop's time constant is about ``admittance_time_constant_s`` whatev
 (a spring surface gives ``F = k * max(0, -z)``, hence ``F_dot = -k z_dot = -(F - F_target) / T``). ``k_est`` starts
 at the conservative (stiff) ``stiffness_guess_n_per_m`` and is refined during PRESS by a least-squares slope of
 force against offset; an overestimate only slows the loop down. ``z_dot`` is clamped to ``max_offset_rate_mps``.
+
+Lateral admittance (in-plane yield ``y``, m, world, perpendicular to the normal): ``y_dot = F_t / D_t`` with
+``F_t`` the in-plane part of the friction force the surface exerts on the pad and ``D_t =
+lateral_damping_n_s_per_m``; its speed is clamped to ``max_offset_rate_mps`` and ``|y|`` to
+``max_lateral_yield_m``, and it is held from the slide on. Why: a position-controlled arm is all but rigid, so
+a lateral mismatch of a fraction of a micrometre between where the arm holds the pad and where static friction
+holds the contact (the press's own micro-motions) is held by friction up to its static limit. Without the yield
+a 4 N press on steel carried 1.0-1.5 N of shear before sliding (a third of the friction cone), where a real
+tool's compliance, or a force-controlled press, would turn that mismatch into millinewtons; the yield takes
+1-4 um (``tests/test_stroking.py``).
 """
 
 from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -77,7 +89,11 @@ class StrokeConfig:
         admittance_time_constant_s: desired time constant of the force loop, s.
         stiffness_guess_n_per_m: initial contact stiffness estimate, N/m (high is conservative).
         min_stiffness_n_per_m, max_stiffness_n_per_m: clamp of the stiffness estimate, N/m.
-        max_offset_rate_mps: clamp of the admittance's normal speed (both ways), m/s.
+        max_offset_rate_mps: clamp of the admittance's normal speed (both ways) and of the lateral yield's speed, m/s.
+        lateral_damping_n_s_per_m: damping of the lateral admittance, N s/m (0 turns it off: the pad holds its
+            commanded line while pressing); with the arm's lateral stiffness in contact, about 2e6 N/m in the
+            simulation, 2e4 gives a time constant of about 10 ms, stable for stiffnesses up to 2 D / tick.
+        max_lateral_yield_m: largest lateral yield, m (a tilted surface would otherwise walk the pad downhill).
         settle_tolerance: relative force band that counts as settled (0.1 = +-10 %).
         settle_time_s: time the force must stay in the band before sliding, s.
         settle_timeout_s: longest SETTLE before failing, s.
@@ -106,6 +122,8 @@ class StrokeConfig:
     min_stiffness_n_per_m: float = 2e2
     max_stiffness_n_per_m: float = 1e6
     max_offset_rate_mps: float = 0.01
+    lateral_damping_n_s_per_m: float = 2e4
+    max_lateral_yield_m: float = 5e-4
     settle_tolerance: float = 0.1
     settle_time_s: float = 0.2
     settle_timeout_s: float = 3.0
@@ -141,6 +159,9 @@ class StrokeConfig:
             value = getattr(self, name)
             check(math.isfinite(value) and value > 0, f"{name} must be positive, got {value}")
         check(self.slow_zone_m >= 0 and self.settle_time_s >= 0, "slow_zone_m and settle_time_s must be >= 0")
+        for name in ("lateral_damping_n_s_per_m", "max_lateral_yield_m"):
+            value = getattr(self, name)
+            check(math.isfinite(value) and value >= 0, f"{name} must be >= 0, got {value}")
         check(self.contact_force_n < self.target_force_n * (1 - self.settle_tolerance),
               f"contact_force_n ({self.contact_force_n} N) must be below the settle band of the target force")
         check(self.settle_tolerance < 1.0, f"settle_tolerance must be < 1, got {self.settle_tolerance}")
@@ -186,6 +207,7 @@ class StrokeCommand:
         in_contact: the measured force is above the contact threshold.
         force_control_active: the admittance loop is driving the normal offset.
         stiffness_estimate_n_per_m: current contact stiffness estimate, N/m.
+        lateral_yield_m: (3,) the lateral admittance's in-plane yield included in ``position_m``, world, m.
         done: the stroke finished (DONE).
         failed: the stroke failed (FAILED); ``failure_reason`` says why.
         failure_reason: empty unless failed.
@@ -203,6 +225,7 @@ class StrokeCommand:
     done: bool
     failed: bool
     failure_reason: str = ""
+    lateral_yield_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 class StrokeController:
@@ -234,6 +257,7 @@ class StrokeController:
         self._anchor = self._start.copy()  # contact point of the slide's start, on the expected surface plane
         self._offset_m = float((p0 - self._start) @ self._n)
         self._lateral = p0 - self._start - self._offset_m * self._n  # in-plane deviation from the anchor
+        self._yield = np.zeros(3)  # the lateral admittance's in-plane yield, m
         self._approach_from = p0
         hover = self._start + cfg.approach_height_m * self._n
         self._approach_dir = hover - p0
@@ -257,12 +281,15 @@ class StrokeController:
         return CartesianLimits(speed_mps, self.config.slide_acceleration_mps2, self.config.slide_jerk_mps3)
 
     # ---------------------------------------------------------------------------------------------------------
-    def step(self, measured_normal_force_n: float, dt_s: float) -> StrokeCommand:
+    def step(self, measured_normal_force_n: float, dt_s: float,
+             measured_shear_force_n: np.ndarray | None = None) -> StrokeCommand:
         """Advance one tick.
 
         Args:
             measured_normal_force_n: normal force on the pad, N (positive = pressing).
             dt_s: time since the previous call, s (> 0).
+            measured_shear_force_n: (3,) friction force of the surface on the pad, world, N, for the lateral
+                admittance; None (no shear sensing) leaves the pad on its commanded line.
 
         Returns:
             The :class:`StrokeCommand` for this tick.
@@ -277,6 +304,10 @@ class StrokeController:
         self._phase_time_s += dt_s
         if not math.isfinite(force):
             return self._fail(f"non-finite normal force {force} in {self.phase.value}")
+        shear = None if measured_shear_force_n is None else np.asarray(measured_shear_force_n, dtype=float)
+        if shear is not None and (shear.shape != (3,) or not np.all(np.isfinite(shear))):
+            return self._fail(f"shear force must be 3 finite numbers, got {measured_shear_force_n} in "
+                              f"{self.phase.value}")
         if force > cfg.max_force_n:
             return self._fail(f"normal force {force:.2f} N above max_force_n {cfg.max_force_n} N in "
                               f"{self.phase.value}")
@@ -287,6 +318,8 @@ class StrokeController:
                    StrokePhase.SETTLE: self._settle, StrokePhase.SLIDE: self._slide,
                    StrokePhase.LIFT: self._lift}[self.phase]
         handler(force, dt_s)
+        if shear is not None and self._in_contact and self.phase in (StrokePhase.PRESS, StrokePhase.SETTLE):
+            self._yield_laterally(shear, dt_s)
         return self._command()
 
     # ---------------------------------------------------------------------------------------------------------
@@ -309,6 +342,21 @@ class StrokeController:
         self._offset_m += rate * dt_s
         self._force_control = True
         return rate
+
+    def _yield_laterally(self, shear_n: np.ndarray, dt_s: float) -> None:
+        """Move the in-plane yield by the lateral admittance law (module docstring)."""
+        cfg = self.config
+        if cfg.lateral_damping_n_s_per_m <= 0.0:
+            return
+        in_plane = shear_n - (shear_n @ self._n) * self._n
+        velocity = in_plane / cfg.lateral_damping_n_s_per_m
+        speed = float(np.linalg.norm(velocity))
+        if speed > cfg.max_offset_rate_mps:
+            velocity *= cfg.max_offset_rate_mps / speed
+        self._yield = self._yield + velocity * dt_s
+        size = float(np.linalg.norm(self._yield))
+        if size > cfg.max_lateral_yield_m:
+            self._yield *= cfg.max_lateral_yield_m / size
 
     def _approach(self, force: float, dt_s: float) -> None:
         if self._in_contact:  # surface higher than expected: start pressing from here
@@ -392,10 +440,10 @@ class StrokeController:
 
     # ---------------------------------------------------------------------------------------------------------
     def _command(self) -> StrokeCommand:
-        position = self._anchor + self._lateral + self._slide_m * self._d + self._offset_m * self._n
+        position = self._anchor + self._lateral + self._yield + self._slide_m * self._d + self._offset_m * self._n
         return StrokeCommand(
             position_m=position, rotation=self._rotation.copy(), phase=self.phase, time_s=self._time_s,
             normal_offset_m=self._offset_m, slide_progress_m=self._slide_m, in_contact=self._in_contact,
             force_control_active=self._force_control and self.phase not in (StrokePhase.DONE, StrokePhase.FAILED),
             stiffness_estimate_n_per_m=self._k_est, done=self.phase is StrokePhase.DONE,
-            failed=self.phase is StrokePhase.FAILED, failure_reason=self._failure)
+            failed=self.phase is StrokePhase.FAILED, failure_reason=self._failure, lateral_yield_m=self._yield.copy())

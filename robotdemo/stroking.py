@@ -178,6 +178,19 @@ def pad_normal_force_n(scene: Scene, obj: SceneObject) -> float:
     return float(sum(c.normal_force_n for c in scene.robot.pad_contacts(obj.body)))
 
 
+def pad_shear_force_n(scene: Scene, obj: SceneObject) -> np.ndarray:
+    """Total friction force of ``obj`` on the pad at the last physics step, (3,) world, N."""
+    return sum((c.shear_force_n for c in scene.robot.pad_contacts(obj.body)), np.zeros(3))
+
+
+def _row_shear_n(rows: list[tuple[float, ...]]) -> np.ndarray:
+    """The summed friction force on body A of :meth:`~robotdemo.sim.Simulator.contact_rows`, (3,) world, N."""
+    if not rows:
+        return np.zeros(3)
+    raw = np.asarray(rows)
+    return (raw[:, 4:5] * raw[:, 5:8] + raw[:, 8:9] * raw[:, 9:12]).sum(axis=0)
+
+
 def move_pad_above(scene: Scene, motion: ArmMotion, config: StrokeConfig) -> np.ndarray:
     """Fold the hand into the stroke posture and move (Ruckig) so the pad hovers over the stroke's start."""
     robot = scene.robot
@@ -202,6 +215,7 @@ class _LoggedStep:
 
     physics_step: int
     pad_force_n: float
+    pad_shear_n: np.ndarray
     pad_position_m: np.ndarray
 
 
@@ -257,10 +271,12 @@ class StrokeExecution:
         robot, motion = self.scene.robot, self.motion
         dt = motion.config.control_period_s
         if self._last_logged is not None and self._last_logged.physics_step == self.scene.sim.steps:
-            force, pad_position = self._last_logged.pad_force_n, self._last_logged.pad_position_m
+            logged = self._last_logged
+            force, shear, pad_position = logged.pad_force_n, logged.pad_shear_n, logged.pad_position_m
         else:  # nothing logged since the physics last stepped: measure
-            force, pad_position = pad_normal_force_n(self.scene, self.obj), robot.tool_state().position_m
-        command = self.command = self.controller.step(force, dt)
+            force, shear = pad_normal_force_n(self.scene, self.obj), pad_shear_force_n(self.scene, self.obj)
+            pad_position = robot.tool_state().position_m
+        command = self.command = self.controller.step(force, dt, shear)
         self.forces.append(force)
         self.phases.append(command.phase)
         self.commanded.append(command.position_m)
@@ -305,8 +321,9 @@ class StrokeExecution:
         rec.obj.append(obj)
         rec.contacts.append(contacts[:RAW_CONTACT_POINTS])
         self._clear_steps = 0 if contacts else self._clear_steps + 1
-        # what the next control tick measures (the same sum as pad_normal_force_n)
-        self._last_logged = _LoggedStep(sim.steps, float(sum(c[3] for c in contacts)), np.array(pad[0:3]))
+        # what the next control tick measures (the same sums as pad_normal_force_n and pad_shear_force_n)
+        self._last_logged = _LoggedStep(sim.steps, float(sum(c[3] for c in contacts)), _row_shear_n(contacts),
+                                        np.array(pad[0:3]))
 
     def result(self) -> StrokeResult:
         command = self.command

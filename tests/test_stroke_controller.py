@@ -158,3 +158,88 @@ def test_direction_lies_in_the_surface_plane():
     R = config.rotation()
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+@dataclass
+class StickySurface(SpringSurface):
+    """A spring surface whose contact also carries Coulomb friction through a lateral contact spring
+    (``lateral_stiffness_n_per_m``, stuck below ``friction * normal``, slipping above), on a tool that sags
+    sideways under load by ``sag_m_per_n`` along x: the sub-micrometre mismatch a rigid arm's press makes."""
+
+    lateral_stiffness_n_per_m: float = 2e6
+    friction: float = 0.8
+    sag_m_per_n: float = 0.5e-6
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.anchor_m: np.ndarray | None = None
+        self.shear_n = np.zeros(3)
+
+    def step(self, tool_m: np.ndarray, command: StrokeCommand) -> tuple[np.ndarray, float]:
+        tool_m, measured_n = super().step(tool_m, command)
+        if measured_n <= 0.0:
+            self.anchor_m, self.shear_n = None, np.zeros(3)
+            return tool_m, measured_n
+        contact_m = tool_m + np.array([self.sag_m_per_n * measured_n, 0.0, 0.0])
+        contact_m[2] = 0.0
+        if self.anchor_m is None:
+            self.anchor_m = contact_m.copy()
+        shear = self.lateral_stiffness_n_per_m * (self.anchor_m - contact_m)
+        limit = self.friction * measured_n
+        if np.linalg.norm(shear) > limit:  # slipping: the anchor trails the contact at the friction limit
+            shear *= limit / np.linalg.norm(shear)
+            self.anchor_m = contact_m + shear / self.lateral_stiffness_n_per_m
+        self.shear_n = shear
+        return tool_m, measured_n
+
+
+def _pre_slide_shear_n(config: StrokeConfig) -> tuple[float, list[StrokeCommand]]:
+    """|shear| at the last tick before the slide on a :class:`StickySurface`, and the commands."""
+    surface = StickySurface(1e5)
+    tool = np.array(config.start_point_m) + np.array([0.0, 0.0, 0.03])
+    controller = StrokeController(config, tool)
+    commands, force, before_slide = [], 0.0, None
+    for _ in range(int(20.0 / DT_S)):
+        command = controller.step(force, DT_S, surface.shear_n)
+        commands.append(command)
+        if command.phase is StrokePhase.SLIDE and before_slide is None:
+            before_slide = float(np.linalg.norm(surface.shear_n))
+        if command.done or command.failed:
+            break
+        tool, force = surface.step(tool, command)
+    assert commands[-1].done, commands[-1].failure_reason
+    return before_slide, commands
+
+
+def test_lateral_admittance_sheds_the_press_shear_and_holds_its_yield_while_sliding():
+    """A press on a sticky surface with a sagging tool builds shear (about k * sag * F = 4 N, capped by
+    friction); yielding to it, the pad reaches the slide all but unloaded, and the yield stays put from then on."""
+    rigid, _ = _pre_slide_shear_n(StrokeConfig(target_force_n=4.0, start_point_m=START_M,
+                                               lateral_damping_n_s_per_m=0.0))
+    yielding, commands = _pre_slide_shear_n(StrokeConfig(target_force_n=4.0, start_point_m=START_M))
+    assert rigid > 2.0
+    assert yielding < 0.05
+    slide = [c for c in commands if c.phase in (StrokePhase.SLIDE, StrokePhase.LIFT, StrokePhase.DONE)]
+    yields = np.array([c.lateral_yield_m for c in slide])
+    assert np.linalg.norm(yields[0]) > 1e-6  # it did yield, along the sag (x) ...
+    np.testing.assert_array_equal(yields, np.broadcast_to(yields[0], yields.shape))  # ... and holds it
+    assert abs(yields[0][2]) < 1e-12  # in the surface plane
+
+
+def test_lateral_yield_ignores_the_normal_part_and_is_capped():
+    config = StrokeConfig(target_force_n=2.0, start_point_m=START_M, settle_timeout_s=10.0, settle_time_s=8.0)
+    controller = StrokeController(config, np.array(START_M))  # at the surface: contact at once
+    for _ in range(200):
+        command = controller.step(2.0, DT_S, np.array([0.0, 0.0, 5.0]))  # a purely normal "shear"
+    np.testing.assert_array_equal(command.lateral_yield_m, np.zeros(3))
+    for _ in range(1000):  # 4.2 s: the yield reaches its cap after about 3.3 s at 3 N / 2e4 N s/m
+        command = controller.step(2.0, DT_S, np.array([0.0, 3.0, 0.0]))  # a shear that never goes away
+    assert command.phase is StrokePhase.SETTLE
+    assert np.linalg.norm(command.lateral_yield_m) == pytest.approx(config.max_lateral_yield_m)
+    assert command.lateral_yield_m[1] > 0  # the pad gives way in the direction the surface pushes it
+
+
+def test_non_finite_shear_fails():
+    controller = StrokeController(StrokeConfig(start_point_m=START_M), np.array(START_M))
+    command = controller.step(1.0, DT_S, np.array([0.0, float("nan"), 0.0]))
+    assert command.failed and "shear" in command.failure_reason
