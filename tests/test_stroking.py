@@ -279,3 +279,19 @@ def test_the_pad_reaches_the_slide_without_shear():
         assert np.all(np.abs(normal - 4.0) < 0.4)  # pressed and settled
         shear[damping] = float(np.median(np.linalg.norm(result.trace.total_shear_force_n()[before], axis=1)))
     assert shear[StrokeConfig().lateral_damping_n_s_per_m] < 0.1 and shear[0.0] > 0.5, shear
+
+
+def test_the_tick_reads_the_same_shear_from_the_log_as_from_the_contacts():
+    """A control tick takes the force and shear the last logged physics step summed (raw contact rows); they
+    are the sums :func:`pad_normal_force_n` and :func:`pad_shear_force_n` read from the named contact points."""
+    from robotdemo.stroking import pad_normal_force_n, pad_shear_force_n
+
+    with Scene(SceneConfig(n_objects=1, seed=1, categories=("metal",), shapes=("box",))) as scene:
+        obj, motion, config = _short_stroke_on_a_metal_box(scene)
+        execution = StrokeExecution(scene, motion, obj, config)
+        while execution.phase is not StrokePhase.SLIDE:
+            assert not execution.step()
+        logged = execution._last_logged
+        assert logged.pad_force_n > 1.0
+        assert logged.pad_force_n == pytest.approx(pad_normal_force_n(scene, obj), rel=1e-12)
+        np.testing.assert_allclose(logged.pad_shear_n, pad_shear_force_n(scene, obj), rtol=1e-12, atol=1e-12)
