@@ -126,7 +126,7 @@ class _TraceRecorder:
                 raw[i, :len(rows)], valid[i, :len(rows)] = rows, True
         to_pad = rot[:, :, :2]  # world -> pad frame (x, y): v @ to_pad
         on_pad = np.einsum("tpj,tjk->tpk", raw[..., 0:3] - pad[:, None, 0:3], to_pad) * valid[..., None]
-        shear_w = raw[..., 4:5] * raw[..., 5:8] + raw[..., 8:9] * raw[..., 9:12]  # friction on the pad (body A)
+        shear_w = _rows_friction_n(raw)  # friction on the pad (body A)
         on_pad, normal, shear, valid = distribute_patch(
             on_pad, np.where(raw[..., 3] > 0.0, raw[..., 3], 0.0), np.einsum("tpj,tjk->tpk", shear_w, to_pad), valid)
         return ContactTrace(t_s=np.array(self.t_s[start:]), point_valid=valid, point_normal_force_n=normal,
@@ -183,12 +183,15 @@ def pad_shear_force_n(scene: Scene, obj: SceneObject) -> np.ndarray:
     return sum((c.shear_force_n for c in scene.robot.pad_contacts(obj.body)), np.zeros(3))
 
 
+def _rows_friction_n(raw: np.ndarray) -> np.ndarray:
+    """The friction force on body A of each :meth:`~robotdemo.sim.Simulator.contact_rows` row, (..., 3) world,
+    N: f1 * dir1 + f2 * dir2, as :attr:`~robotdemo.sim.ContactPoint.shear_force_n`."""
+    return raw[..., 4:5] * raw[..., 5:8] + raw[..., 8:9] * raw[..., 9:12]
+
+
 def _row_shear_n(rows: list[tuple[float, ...]]) -> np.ndarray:
     """The summed friction force on body A of :meth:`~robotdemo.sim.Simulator.contact_rows`, (3,) world, N."""
-    if not rows:
-        return np.zeros(3)
-    raw = np.asarray(rows)
-    return (raw[:, 4:5] * raw[:, 5:8] + raw[:, 8:9] * raw[:, 9:12]).sum(axis=0)
+    return _rows_friction_n(np.asarray(rows)).sum(axis=0) if rows else np.zeros(3)
 
 
 def move_pad_above(scene: Scene, motion: ArmMotion, config: StrokeConfig) -> np.ndarray:
