@@ -599,18 +599,25 @@ def _pool_init() -> None:
     torch.set_num_threads(1)
 
 
-def _pretrain_job(job: _TrainJob) -> str:
+def _pretrain_job(item: tuple[_TrainJob, bool]) -> str:
     ctx = _POOL_CONTEXT
     assert ctx is not None, "_pretrain_job runs only in a worker forked by _pretrain"
+    job, on_fire = item
     _outcome(ctx, job)
+    if on_fire:
+        _zero_shot_on_fire(ctx, job)
     return job.run_name or f"{job.task} {job.model} {job.split_name} p={job.corruption} std={job.corruption_std:g}"
 
 
-def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
+def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int, on_fire: Sequence[_TrainJob] = ()) -> None:
     """Train and score the runs of ``jobs`` that the run store lacks, in ``workers`` forked processes of one
     torch thread each (one job per run folder, at its first place in ``jobs``); each worker adds its outcomes
-    to the store as it finishes them. The experiments then run as without workers and find every outcome in
-    the store, so the results are those of a sequential evaluation. One torch thread per process, so
+    to the store as it finishes them. A run whose folder is also one of ``on_fire``'s (the robustness curve's)
+    is scored zero-shot on the fire strokes by the worker that trains it (:func:`_zero_shot_on_fire`, with a fire
+    data set and ``robustness_fire``), while its checkpoint is at hand: run folders do not outlive a session, so
+    a score left for later would train its run again. A stored run whose score is missing is scored (and, its
+    folder gone, trained again) by a worker too. The experiments then run as without workers and find every
+    outcome in the store, so the results are those of a sequential evaluation. One torch thread per process, so
     ``workers`` processes share as many cores without oversubscribing them. On a GPU the workers share it; if
     this process has used CUDA already, a forked worker could not, so the runs are trained here one after
     another instead."""
@@ -623,7 +630,11 @@ def _pretrain(ctx: _Context, jobs: Sequence[_TrainJob], workers: int) -> None:
     for job in jobs:
         if job.model != "reference":
             unique.setdefault(job.run_dir(ctx), job)
-    pending = [job for job in unique.values() if _outcome_id(ctx, job) not in ctx.outcomes]
+    scored_on_fire = ({job.run_dir(ctx) for job in on_fire} if ctx.fire is not None and ctx.config.robustness_fire
+                      else set())
+    pending = [(job, run_dir in scored_on_fire) for run_dir, job in unique.items()]
+    pending = [(job, on_fire) for job, on_fire in pending if _outcome_id(ctx, job) not in ctx.outcomes
+               or (on_fire and _zero_shot_id(ctx, job) not in ctx.outcomes)]
     if not pending:
         return
     in_process = resolve_device(ctx.config.train.device).type == "cuda" and torch.cuda.is_initialized()
@@ -1356,9 +1367,9 @@ def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: boo
         fire_runs = ([_fire_runs(ctx, m, s) for s in cfg.seeds for m in cfg.fire_models]
                      if ctx.fire is not None else [])
         _pretrain(ctx, [j for j in jobs if j.model in cfg.models] + [j for j in jobs if j.model not in cfg.models]
-                  + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers)
+                  + [r[kind] for r in fire_runs for kind in ("clean", "scratch")], workers, on_fire=rob)
         _pretrain(ctx, [r["finetuned"] for r in fire_runs]  # these start from the clean checkpoints
-                  + [job for _, job in _single_sensor_jobs(ctx)] + rob, workers)
+                  + [job for _, job in _single_sensor_jobs(ctx)] + rob, workers, on_fire=rob)
     bar = tqdm(total=len(jobs) + len(rob), desc="evaluate", disable=not progress)
 
     per: dict[tuple[str, str], list] = {}

@@ -196,9 +196,9 @@ def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
     pretrained: list[str] = []
     pretrain = evaluation._pretrain
 
-    def spy(ctx, jobs, workers):
+    def spy(ctx, jobs, workers, **kwargs):
         pretrained.extend(str(job.run_dir(ctx).relative_to(ctx.out_dir / "runs")) for job in jobs)
-        return pretrain(ctx, jobs, workers)
+        return pretrain(ctx, jobs, workers, **kwargs)
 
     monkeypatch.setattr(evaluation, "_pretrain", spy)
     runs = {}
@@ -524,6 +524,45 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     fewer = dataclasses.replace(config, train=dataclasses.replace(config.train, epochs=1))
     _, outcomes = run(fewer)
     assert outcomes["from_store"] == 0
+
+
+def test_a_robustness_run_is_scored_on_fire_strokes_by_the_worker_that_trains_it(tmp_path, monkeypatch):
+    """Run folders do not outlive a session: an evaluation cut off once its workers are done keeps every
+    robustness run's fire score in the store, and the next one, without the folders, trains nothing again."""
+    import perception.evaluate as evaluation
+    from perception.evaluate import evaluation_status
+
+    torch.set_num_threads(1)
+    _write_toy_clean_and_fire(tmp_path)
+    config = dataclasses.replace(quick_config(), models=("lstm", "reference"), ablation=False, probes=False,
+                                 robustness_models=("lstm",), corruption_ratios=(0.0, 1.0), corruption_stds=(3.0,),
+                                 fire_models=("lstm",), single_sensor_models=(), tsne=False)
+    out = tmp_path / "report"
+
+    def run(workers):
+        return evaluate(tmp_path / "clean", out, config=config, progress=False, workers=workers,
+                        fire_dir=tmp_path / "fire")
+
+    class SessionEnded(Exception):
+        pass
+
+    def session_ends(ctx, job):  # the evaluation's first step after the workers' training
+        raise SessionEnded
+
+    with monkeypatch.context() as patch:
+        patch.setattr(evaluation, "_run", session_ends)
+        with pytest.raises(SessionEnded):
+            run(workers=2)
+    status = evaluation_status(tmp_path / "clean", out, fire_dir=tmp_path / "fire", config=config)
+    assert status["stored"] == status["runs"] > 0
+    assert status["robustness_fire_scores"] == {"stored": 2, "scores": 2}  # p = 0 (Table 1's run) and p = 1
+
+    shutil.rmtree(out / "runs")  # the next session's checkout
+    results = run(workers=1)
+    assert not (out / "runs").exists()  # nothing trained again
+    assert results["provenance"]["outcomes"]["scored_here"] == 0
+    [level] = results["robustness"]["fire_zero_shot"]
+    assert {a for runs in level["stored_test_agreement"]["lstm"].values() for a in runs} == {1.0}
 
 
 def test_status_tells_a_recording_made_with_other_numerics_from_one_made_by_other_code(tmp_path):
