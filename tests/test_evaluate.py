@@ -13,7 +13,8 @@ import torch
 
 from perception.checkpoint import load_checkpoint
 from perception.dataset import write_dataset
-from perception.evaluate import PAPER, _category_recall, evaluate, g_mean, quick_config
+from perception.evaluate import _category_recall, evaluate, g_mean, quick_config
+from perception.report import PAPER, write_report
 from tests.test_dataset import make_material_strokes
 
 
@@ -183,6 +184,9 @@ def test_quick_evaluation_writes_report(tmp_path):
     for failed in saved["failed_runs"]:
         assert failed["max_train_accuracy"] < 2.0 / failed["n_classes"]
     assert np.isfinite(saved["seconds"])
+    # the report is a function of results.json alone: written again from the saved file, it is the same text
+    write_report(tmp_path / "again.md", saved)
+    assert (tmp_path / "again.md").read_text() == report
 
 
 def test_parallel_training_gives_the_sequential_results(tmp_path, monkeypatch):
@@ -296,7 +300,7 @@ def test_a_fine_tuned_run_is_trained_again_when_the_checkpoint_it_starts_from_ch
 
 
 def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
-    import perception.evaluate as evaluation
+    from perception.report import _pct
 
     torch.set_num_threads(1)
     _write_toy_clean_and_fire(tmp_path)
@@ -371,7 +375,7 @@ def test_fire_shift_and_robustness_repeat_every_run_per_seed(tmp_path):
     assert "| trained at noise std 3 | p=0.0 | p=1.0 |" in report
     assert f"| LSTM | {100 * on_fire[1]['curves']['lstm']['0.0']:.1f} ± " in report
     assert "as the run store holds on every stroke (6 checkpoints)" in report  # 2 seeds x (p = 0, 1 x 2 stds)
-    assert f"| {evaluation._pct(rows['reference, fire only']['accuracy'])} |" in report
+    assert f"| {_pct(rows['reference, fire only']['accuracy'])} |" in report
 
 
 def test_inference_benchmark_reports_latency(tmp_path):
