@@ -33,6 +33,7 @@ import numpy as np
 import safetensors.torch
 import torch
 import torch.nn as nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from tqdm.auto import tqdm
 
 from perception.atomic import atomic_write
@@ -55,6 +56,9 @@ TEST_CORRUPTION_SEED_OFFSET = 12345
 # TrainConfig fields that say where a run trains, not what it trains: a run folder resumes whatever they are
 # (a run begun with "auto" on a GPU machine goes on with "cpu" elsewhere, or with another thread count)
 PLACEMENT_FIELDS = ("device", "num_threads")
+# TrainConfig fields added after runs were stored, left out of a run's identity at the value those runs trained
+# with, so that adding a field does not make every stored run stale
+TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0}
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -151,6 +155,9 @@ class TrainConfig:
             missing, as a sensor that dropped out; :func:`drop_modalities`), at least one kept per sample.
             Trains a model not to lean on one stream alone. 0 disables it.
         model_overrides: (field, value) pairs passed to the model config (e.g. (("d_model", 32),)).
+        ema_decay: keep an exponential moving average of the weights (Polyak averaging, decay per training step,
+            :class:`torch.optim.swa_utils.AveragedModel`); validation, the best-epoch checkpoint and the resume
+            state use the average. 0 disables it (the paper's plain weights).
         init_checkpoint: checkpoint folder to fine-tune from ("" trains from scratch); its norm stats and
             class names are kept.
         feature_config: the front end.
@@ -180,6 +187,7 @@ class TrainConfig:
     group_by_length: bool = False
     modality_dropout: float = 0.0
     time_crop: float = 1.0
+    ema_decay: float = 0.0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -222,6 +230,8 @@ class TrainConfig:
             raise ValueError(f"modality_dropout must lie in [0, 1), got {self.modality_dropout}")
         if not 0.0 < self.time_crop <= 1.0:
             raise ValueError(f"time_crop must lie in (0, 1], got {self.time_crop}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
         if not math.isfinite(self.corruption_std):
             raise ValueError(f"corruption_std must be finite, got {self.corruption_std}")
         if not 0.0 <= self.val_fraction < 1.0:
@@ -485,9 +495,12 @@ def strokes_fingerprint(records: Sequence[StrokeRecord]) -> str:
     return digest.hexdigest()
 
 
-def _save_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, record: dict[str, Any]) -> None:
+def _save_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, record: dict[str, Any],
+                 ema: AveragedModel | None = None) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    if ema is not None:
+        tensors.update({f"ema.{k}": v.detach().cpu().contiguous() for k, v in ema.state_dict().items()})
     opt = optimizer.state_dict()
     state_keys: dict[str, list[str]] = {}
     for pid, state in opt["state"].items():
@@ -518,7 +531,8 @@ def _checkpoint_model_config(checkpoint_dir: Path, cls: type) -> dict[str, Any]:
 
 
 def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device,
-                   identity: Mapping[str, Any], model_config_cls: type) -> dict[str, Any] | None:
+                   identity: Mapping[str, Any], model_config_cls: type, ema: AveragedModel | None = None
+                   ) -> dict[str, Any] | None:
     """The resume record of the run folder ``out_dir`` (its state loaded into ``model`` and ``optimizer``), or
     None for a fresh folder.
 
@@ -526,7 +540,7 @@ def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optim
         StaleRunError: the folder holds a run of another config, model, class list or data.
     """
     resume_dir = out_dir / RESUME_DIR
-    record = _load_resume(resume_dir, model, optimizer, device)
+    record = _load_resume(resume_dir, model, optimizer, device, ema)
     if record is None:
         return None
     if isinstance(record.get("config"), dict):
@@ -550,8 +564,10 @@ def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optim
 
 
 def _trained_config(config: TrainConfig) -> dict[str, Any]:
-    """``config`` as plain JSON without its :data:`PLACEMENT_FIELDS`: what a run folder's identity holds."""
-    return {k: v for k, v in config.to_dict().items() if k not in PLACEMENT_FIELDS}
+    """``config`` as plain JSON without its :data:`PLACEMENT_FIELDS` (and the :data:`TRAIN_IDENTITY_OMITS` at
+    their given values): what a run folder's identity holds."""
+    return {k: v for k, v in config.to_dict().items()
+            if k not in PLACEMENT_FIELDS and not (k in TRAIN_IDENTITY_OMITS and v == TRAIN_IDENTITY_OMITS[k])}
 
 
 def run_identity(config: TrainConfig, n_classes: int) -> dict[str, Any]:
@@ -580,8 +596,8 @@ def _set_aside(out_dir: Path) -> Path:
     return aside
 
 
-def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device
-                 ) -> dict[str, Any] | None:
+def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device,
+                 ema: AveragedModel | None = None) -> dict[str, Any] | None:
     json_path, tensor_path = folder / "state.json", folder / "state.safetensors"
     if not json_path.is_file():
         return None
@@ -597,6 +613,16 @@ def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
         detail = " ".join(line.strip() for line in str(exc).splitlines()[1:] if line.strip())
         raise StaleRunError(f"{folder}: holds a model of another architecture "
                             f"({detail[:160] or exc}); use a fresh output folder") from None
+    if ema is not None:
+        ema_state = {k[len("ema."):]: v for k, v in tensors.items() if k.startswith("ema.")}
+        if not ema_state:  # the identity check that follows tells this run apart too; say it plainly here
+            raise StaleRunError(f"{folder}: holds a run without the weight average this config keeps; use a fresh "
+                                f"output folder")
+        try:
+            ema.load_state_dict(ema_state)
+        except RuntimeError as exc:
+            raise StaleRunError(f"{folder}: its weight average does not fit this model ({exc.__class__.__name__}); "
+                                f"use a fresh output folder") from None
     try:
         state = {int(pid): {name: tensors[f"optim.{pid}.{name}"] for name in names}
                  for pid, names in record["optimizer_state_keys"].items()}
@@ -696,6 +722,9 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     model.to(device)
     opt_cls = torch.optim.AdamW if config.optimizer == "adamw" else torch.optim.Adam
     optimizer = opt_cls(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    ema = (AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
+           if config.ema_decay > 0 else None)
+    evaluated = model if ema is None else ema.module  # what validation scores and the checkpoint keeps
 
     n = len(norm_train)
     if n == 0:
@@ -710,7 +739,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
 
     resume_dir = out_dir / RESUME_DIR
     try:
-        record = _resume_record(out_dir, model, optimizer, device, identity, type(model_config))
+        record = _resume_record(out_dir, model, optimizer, device, identity, type(model_config), ema)
     except StaleRunError as exc:
         if not replace_stale:
             raise
@@ -763,12 +792,14 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             if config.grad_clip > 0:
                 nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             optimizer.step()
+            if ema is not None:
+                ema.update_parameters(model)
             k = len(idx)
             sums["loss"] += float(loss.detach()) * k
             sums["ce"] += float(terms.ce.detach()) * k
             sums["contrastive"] += float(terms.contrastive.detach()) * k
             sums["correct"] += float((out.logits.argmax(dim=1) == batch.labels).sum())
-        val_pred = predict(model, norm_val, dims, batch_size=max(64, config.batch_size), device=device,
+        val_pred = predict(evaluated, norm_val, dims, batch_size=max(64, config.batch_size), device=device,
                            corruption_ratio=config.corruption_ratio, corruption_std=config.corruption_std,
                            seed=config.seed + 1).pred if norm_val else np.zeros(0, np.int64)
         val_acc = _accuracy(val_pred, y_val)
@@ -779,10 +810,10 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         improved = (val_acc > best_val) if norm_val else True
         if improved:
             best_epoch, best_val = epoch + 1, (val_acc if norm_val else float("nan"))
-            save_checkpoint(out_dir / CHECKPOINT_DIR, config.model, model, model_config, fc, stats, names,
+            save_checkpoint(out_dir / CHECKPOINT_DIR, config.model, evaluated, model_config, fc, stats, names,
                             meta={**meta, "best_epoch": best_epoch, "val_accuracy": val_acc})
         _save_resume(resume_dir, model, optimizer, {**identity, "epoch": epoch + 1, "history": history,
-                                                    "best_epoch": best_epoch, "best_val_accuracy": best_val})
+                                                    "best_epoch": best_epoch, "best_val_accuracy": best_val}, ema)
         bar.set_postfix(loss=f"{row['train_loss']:.3f}", val=f"{val_acc:.3f}")
         if on_epoch_end is not None:
             on_epoch_end(row)

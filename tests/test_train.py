@@ -99,6 +99,46 @@ def test_resume_gives_identical_weights(toy, tmp_path):
         _fit(toy, dataclasses.replace(config, lr=1e-2), tmp_path / "full")
 
 
+def test_weight_average_is_validated_kept_and_resumed(toy, tmp_path):
+    plain = _fit(toy, _config(epochs=3), tmp_path / "plain")
+    # a vanishing decay: the average is the live weights, so the run is the plain one
+    copy = _fit(toy, _config(epochs=3, ema_decay=1e-12), tmp_path / "copy")
+    assert [r["val_accuracy"] for r in copy.history] == [r["val_accuracy"] for r in plain.history]
+    config = _config(epochs=3, ema_decay=0.9)
+    full = _fit(toy, config, tmp_path / "full")
+    state = safetensors.torch.load_file(str(tmp_path / "full" / "resume" / "state.safetensors"))
+    live = {k[len("model."):]: v for k, v in state.items() if k.startswith("model.")}
+    averaged = {k[len("ema.module."):]: v for k, v in state.items() if k.startswith("ema.module.")}
+    assert averaged.keys() == live.keys()
+    assert int(state["ema.n_averaged"]) == 3 * -(-len(toy["tr"]) // 16)  # once per training step
+    assert any(not torch.equal(averaged[k], live[k]) for k in live)  # the average lags the live weights
+    assert full.best_epoch == 3  # (seeded) so the checkpoint holds the last average, not the live weights
+    kept = safetensors.torch.load_file(str(full.checkpoint_dir / "model.safetensors"))
+    assert all(torch.equal(kept[k], averaged[k]) for k in kept)
+
+    class Interrupt(Exception):
+        pass
+
+    def stop_after_two(row):
+        if row["epoch"] == 2:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        _fit(toy, config, tmp_path / "cut", on_epoch_end=stop_after_two)
+    resumed = _fit(toy, config, tmp_path / "cut")
+    assert resumed.resumed_from_epoch == 2
+    assert [r["val_accuracy"] for r in resumed.history] == [r["val_accuracy"] for r in full.history]
+    again = safetensors.torch.load_file(str(tmp_path / "cut" / "resume" / "state.safetensors"))
+    assert again.keys() == state.keys() and all(torch.equal(again[k], state[k]) for k in state)
+    # the average is part of what a run is; off, it leaves stored runs' identities as they were
+    assert "ema_decay" not in run_identity(_config(), 3)["config"]
+    assert run_identity(config, 3)["config"]["ema_decay"] == 0.9
+    with pytest.raises(TrainError, match="another config|weight average"):
+        _fit(toy, config, tmp_path / "plain")
+    with pytest.raises(ValueError, match="ema_decay"):
+        TrainConfig(ema_decay=1.0)
+
+
 def test_run_folder_resumes_whatever_its_device_and_thread_count(toy, tmp_path):
     config = _config(epochs=2)
     first = _fit(toy, config, tmp_path / "run")
