@@ -68,9 +68,8 @@ def test_training_beats_chance_on_held_out_strokes(toy, tmp_path, model):
     assert _test_accuracy(toy, result.checkpoint_dir) >= 0.6  # chance is 1/3
 
 
-def test_resume_gives_identical_weights(toy, tmp_path):
-    config = _config(epochs=3)
-    full = _fit(toy, config, tmp_path / "full")
+def _stopped_after_two_epochs_then_resumed(toy, config, out_dir):
+    """Train ``config`` into ``out_dir``, interrupted at the end of epoch 2, then run it again to resume."""
 
     class Interrupt(Exception):
         pass
@@ -80,8 +79,15 @@ def test_resume_gives_identical_weights(toy, tmp_path):
             raise Interrupt
 
     with pytest.raises(Interrupt):
-        _fit(toy, config, tmp_path / "cut", on_epoch_end=stop_after_two)
-    resumed = _fit(toy, config, tmp_path / "cut")
+        _fit(toy, config, out_dir, on_epoch_end=stop_after_two)
+    return _fit(toy, config, out_dir)
+
+
+def test_resume_gives_identical_weights(toy, tmp_path):
+    config = _config(epochs=3)
+    full = _fit(toy, config, tmp_path / "full")
+
+    resumed = _stopped_after_two_epochs_then_resumed(toy, config, tmp_path / "cut")
     assert resumed.resumed_from_epoch == 2 and full.resumed_from_epoch == 0
     assert resumed.best_epoch == full.best_epoch
     strip = lambda h: [{k: v for k, v in row.items() if k != "seconds"} for row in h]  # noqa: E731
@@ -116,16 +122,7 @@ def test_weight_average_is_validated_kept_and_resumed(toy, tmp_path):
     kept = safetensors.torch.load_file(str(full.checkpoint_dir / "model.safetensors"))
     assert all(torch.equal(kept[k], averaged[k]) for k in kept)
 
-    class Interrupt(Exception):
-        pass
-
-    def stop_after_two(row):
-        if row["epoch"] == 2:
-            raise Interrupt
-
-    with pytest.raises(Interrupt):
-        _fit(toy, config, tmp_path / "cut", on_epoch_end=stop_after_two)
-    resumed = _fit(toy, config, tmp_path / "cut")
+    resumed = _stopped_after_two_epochs_then_resumed(toy, config, tmp_path / "cut")
     assert resumed.resumed_from_epoch == 2
     assert [r["val_accuracy"] for r in resumed.history] == [r["val_accuracy"] for r in full.history]
     again = safetensors.torch.load_file(str(tmp_path / "cut" / "resume" / "state.safetensors"))
