@@ -58,7 +58,7 @@ TEST_CORRUPTION_SEED_OFFSET = 12345
 PLACEMENT_FIELDS = ("device", "num_threads")
 # TrainConfig fields added after runs were stored, left out of a run's identity at the value those runs trained
 # with, so that adding a field does not make every stored run stale
-TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0}
+TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0}
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -154,6 +154,10 @@ class TrainConfig:
         modality_dropout: training only: probability that each present modality of a sample is removed (marked
             missing, as a sensor that dropped out; :func:`drop_modalities`), at least one kept per sample.
             Trains a model not to lean on one stream alone. 0 disables it.
+        feature_mask: training only: SpecAugment-style masking (Park et al. 2019). In every present modality of
+            every sample one band of consecutive feature channels and one span of consecutive valid steps are
+            set to 0 (the training mean in normalised units), each as wide as a uniform share in
+            [0, ``feature_mask``] of the channels or of the stroke's steps (:func:`mask_features`); 0 disables it.
         model_overrides: (field, value) pairs passed to the model config (e.g. (("d_model", 32),)).
         ema_decay: keep an exponential moving average of the weights (Polyak averaging, decay per training step,
             :class:`torch.optim.swa_utils.AveragedModel`); validation, the best-epoch checkpoint and the resume
@@ -188,6 +192,7 @@ class TrainConfig:
     modality_dropout: float = 0.0
     time_crop: float = 1.0
     ema_decay: float = 0.0
+    feature_mask: float = 0.0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -230,6 +235,8 @@ class TrainConfig:
             raise ValueError(f"modality_dropout must lie in [0, 1), got {self.modality_dropout}")
         if not 0.0 < self.time_crop <= 1.0:
             raise ValueError(f"time_crop must lie in (0, 1], got {self.time_crop}")
+        if not 0.0 <= self.feature_mask < 1.0:
+            raise ValueError(f"feature_mask must lie in [0, 1), got {self.feature_mask}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
         if not math.isfinite(self.corruption_std):
@@ -365,6 +372,39 @@ def crop_in_time(features: StrokeFeatures, min_share: float, generator: torch.Ge
         hi = max(int(math.ceil((start + share) * len(f))), lo + 1)
         out[m] = f[lo:hi]
     return out
+
+
+def _band(lengths: torch.Tensor, max_share: float, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per sample, a band [start, start + width) inside [0, length): width ~ floor(U(0, max_share) * length),
+    start uniform over the positions where it fits. ``lengths`` (B,) int64; returns (start, width), (B,) each."""
+    u_width, u_start = torch.rand(2, lengths.shape[0], generator=generator, dtype=torch.float64)
+    width = torch.floor(u_width * max_share * lengths).long()
+    start = torch.floor(u_start * (lengths - width + 1)).long()
+    return start, width
+
+
+def mask_features(batch: FeatureBatch, max_share: float, generator: torch.Generator) -> FeatureBatch:
+    """Training augmentation in the manner of SpecAugment (Park et al. 2019): in each present modality of each
+    sample one band of consecutive channels and one span of consecutive valid steps are set to 0 (the training
+    mean in normalised units). Each is a uniform share in [0, ``max_share``] of the channels or of that sample's
+    valid steps. Padding and missing modalities are left as they are; ``max_share`` 0 returns the batch unchanged
+    without drawing from ``generator``."""
+    if max_share <= 0:
+        return batch
+    x = {}
+    for m in MODALITIES:
+        xm = batch.x[m]  # (B, T, C)
+        n_batch, n_steps, n_channels = xm.shape
+        valid_steps = (~batch.padding[m]).sum(dim=1)  # (B,)
+        c_start, c_width = _band(torch.full((n_batch,), n_channels), max_share, generator)
+        t_start, t_width = _band(valid_steps, max_share, generator)
+        channel = torch.arange(n_channels)[None, :]  # (1, C)
+        step = torch.arange(n_steps)[None, :]  # (1, T)
+        in_channels = (channel >= c_start[:, None]) & (channel < (c_start + c_width)[:, None])  # (B, C)
+        in_steps = (step >= t_start[:, None]) & (step < (t_start + t_width)[:, None])  # (B, T)
+        keep = ~(in_channels[:, None, :] | in_steps[:, :, None])  # (B, T, C)
+        x[m] = xm * keep.to(xm.dtype)
+    return dataclasses.replace(batch, x=x)
 
 
 def drop_modalities(batch: FeatureBatch, prob: float, generator: torch.Generator) -> FeatureBatch:
@@ -776,6 +816,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
                 group["lr"] = lr
             batch = collate([crop_in_time(norm_train[i], config.time_crop, gen) for i in idx], dims,
                             labels=y_train[idx].tolist())
+            batch = mask_features(batch, config.feature_mask, gen)
             batch = add_feature_noise(batch, config.feature_noise_std, gen)
             batch = drop_modalities(batch, config.modality_dropout, gen)
             batch = corrupt_batch(batch, config.corruption_ratio, config.corruption_std, gen).to(device)

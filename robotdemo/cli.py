@@ -96,7 +96,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          group_by_length=args.group_by_length,
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
-                         time_crop=args.time_crop, ema_decay=args.ema_decay, corruption_ratio=args.corruption_ratio,
+                         time_crop=args.time_crop, ema_decay=args.ema_decay, feature_mask=args.feature_mask,
+                         corruption_ratio=args.corruption_ratio,
                          corruption_std=args.corruption_std,
                          model_overrides=overrides, feature_config=_feature_config(args.modalities))
     _output_folder(args.out, "--out")
@@ -338,6 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--ema-decay", type=float, default=0.0, metavar="DECAY",
                        help="validate and keep an exponential moving average of the weights with this decay per "
                             "step (default 0: off, the plain weights)")
+    train.add_argument("--feature-mask", type=float, default=0.0, metavar="SHARE",
+                       help="training: SpecAugment-style masking, one band of channels and one span of steps of each "
+                            "stream zeroed, each up to this share wide (default 0: off)")
     train.add_argument("--corruption-ratio", type=float, default=0.0, metavar="P",
                        help="robustness experiment: each modality of each stroke gets N(0, STD^2) noise (training "
                             "std units) with probability P, in training, validation and test (default 0)")

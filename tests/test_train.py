@@ -16,7 +16,7 @@ from perception.features import collate, feature_dims, featurize
 from perception.baselines import build_model
 from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError, corrupt_batch,
                               cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
-                              predict, run_identity, scheduled_lr, strokes_fingerprint, task_split, train,
+                              mask_features, predict, run_identity, scheduled_lr, strokes_fingerprint, task_split, train,
                               train_command)
 from tests.test_dataset import make_material_strokes
 
@@ -239,6 +239,46 @@ def test_time_crop_keeps_the_same_span_of_every_stream():
     assert min(shares) < 0.6 and max(shares) > 0.9  # shares spread over [0.5, 1]
     with pytest.raises(ValueError, match="time_crop"):
         TrainConfig(time_crop=0.0)
+
+
+def test_feature_mask_zeroes_one_channel_band_and_one_step_span_of_valid_steps():
+    recs = make_material_strokes(3, n_categories=2, n_instances=2, n_objects=2, n_strokes=8, duration_s=0.2)
+    cfg = TrainConfig().feature_config
+    feats = [featurize(r, cfg) for r in recs]
+    feats[0] = {**feats[0], "accel": None}  # a missing stream stays missing
+    batch = collate(feats, feature_dims(cfg))
+    gen = torch.Generator().manual_seed(0)
+    assert mask_features(batch, 0.0, gen) is batch  # off: the batch as it is, and no draw from the generator
+    assert torch.equal(gen.get_state(), torch.Generator().manual_seed(0).get_state())
+    masked = mask_features(batch, 0.5, gen)
+    assert masked.padding is batch.padding and masked.present is batch.present
+    widths = []
+    for m in batch.x:
+        x, y, pad = batch.x[m], masked.x[m], batch.padding[m]
+        assert torch.equal(y[pad], x[pad])  # padding (and missing streams) untouched
+        assert torch.all((y == x) | (y == 0))  # only zeroes
+        for b in range(x.shape[0]):
+            if not batch.present[m][b]:
+                continue
+            zero = (y[b] == 0) & (x[b] != 0)  # (T, C) what the mask removed
+            valid = int((~pad[b]).sum())
+            rows, cols = zero[:valid].all(dim=1), zero[:valid].all(dim=0)
+            n_rows, n_cols = int(rows.sum()), int(cols.sum())
+            assert n_rows <= 0.5 * valid and n_cols <= 0.5 * x.shape[2]
+            for band in (rows, cols):  # each band is one run of consecutive indices
+                idx = torch.nonzero(band).flatten()
+                assert len(idx) == 0 or int(idx[-1] - idx[0]) + 1 == len(idx)
+            outside = ~(rows[:, None] | cols[None, :])
+            assert torch.equal(y[b, :valid][outside], x[b, :valid][outside])  # the rest as it was
+            widths.append((n_rows / valid, n_cols / x.shape[2]))
+    assert max(w for w, _ in widths) > 0.3 and max(w for _, w in widths) > 0.3  # bands reach up to the share
+    assert min(w for w, _ in widths) < 0.1
+    again = mask_features(batch, 0.5, torch.Generator().manual_seed(0))
+    assert all(torch.equal(again.x[m], masked.x[m]) for m in batch.x)  # seeded
+    assert "feature_mask" not in run_identity(TrainConfig(), 3)["config"]  # off: stored runs stay valid
+    assert run_identity(TrainConfig(feature_mask=0.2), 3)["config"]["feature_mask"] == 0.2
+    with pytest.raises(ValueError, match="feature_mask"):
+        TrainConfig(feature_mask=1.0)
 
 
 def test_modality_dropout_marks_streams_missing_and_keeps_one():
