@@ -374,13 +374,14 @@ def crop_in_time(features: StrokeFeatures, min_share: float, generator: torch.Ge
     return out
 
 
-def _band(lengths: torch.Tensor, max_share: float, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per sample, a band [start, start + width) inside [0, length): width ~ floor(U(0, max_share) * length),
-    start uniform over the positions where it fits. ``lengths`` (B,) int64; returns (start, width), (B,) each."""
+def _random_band(lengths: torch.Tensor, size: int, max_share: float, generator: torch.Generator) -> torch.Tensor:
+    """Per sample, a band [start, start + width) inside [0, length) as a (B, size) bool mask: width ~ floor(U(0,
+    max_share) * length), start uniform over the positions where it fits. ``lengths`` (B,) int64, each <= size."""
     u_width, u_start = torch.rand(2, lengths.shape[0], generator=generator, dtype=torch.float64)
     width = torch.floor(u_width * max_share * lengths).long()
     start = torch.floor(u_start * (lengths - width + 1)).long()
-    return start, width
+    index = torch.arange(size)[None, :]  # (1, size)
+    return (index >= start[:, None]) & (index < (start + width)[:, None])
 
 
 def mask_features(batch: FeatureBatch, max_share: float, generator: torch.Generator) -> FeatureBatch:
@@ -395,13 +396,8 @@ def mask_features(batch: FeatureBatch, max_share: float, generator: torch.Genera
     for m in MODALITIES:
         xm = batch.x[m]  # (B, T, C)
         n_batch, n_steps, n_channels = xm.shape
-        valid_steps = (~batch.padding[m]).sum(dim=1)  # (B,)
-        c_start, c_width = _band(torch.full((n_batch,), n_channels), max_share, generator)
-        t_start, t_width = _band(valid_steps, max_share, generator)
-        channel = torch.arange(n_channels)[None, :]  # (1, C)
-        step = torch.arange(n_steps)[None, :]  # (1, T)
-        in_channels = (channel >= c_start[:, None]) & (channel < (c_start + c_width)[:, None])  # (B, C)
-        in_steps = (step >= t_start[:, None]) & (step < (t_start + t_width)[:, None])  # (B, T)
+        in_channels = _random_band(torch.full((n_batch,), n_channels), n_channels, max_share, generator)  # (B, C)
+        in_steps = _random_band((~batch.padding[m]).sum(dim=1), n_steps, max_share, generator)  # (B, T)
         keep = ~(in_channels[:, None, :] | in_steps[:, :, None])  # (B, T, C)
         x[m] = xm * keep.to(xm.dtype)
     return dataclasses.replace(batch, x=x)

@@ -16,8 +16,8 @@ from perception.features import collate, feature_dims, featurize
 from perception.baselines import build_model
 from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError, corrupt_batch,
                               cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
-                              mask_features, predict, run_identity, scheduled_lr, strokes_fingerprint, task_split, train,
-                              train_command)
+                              mask_features, predict, run_identity, scheduled_lr, strokes_fingerprint, task_split,
+                              train, train_command)
 from tests.test_dataset import make_material_strokes
 
 TINY = {
