@@ -53,8 +53,12 @@ def cross_instance_contrastive_loss(embedding: torch.Tensor, labels: torch.Tenso
 
 
 def total_loss(logits: torch.Tensor, embedding: torch.Tensor, labels: torch.Tensor, cer_lambda: float,
-               cer_tau: float, label_smoothing: float = 0.0) -> LossTerms:
+               cer_tau: float, label_smoothing: float = 0.0, partner_labels: torch.Tensor | None = None,
+               share: float = 1.0) -> LossTerms:
     """L_total = L_cls + lambda * L_C (eq. 14); with cer_lambda = 0 the contrastive term is still reported.
+
+    For a mixup batch (:func:`perception.train.mixup_batch`) L_cls is ``share * CE(labels) + (1 - share) *
+    CE(partner_labels)``; L_C reads ``labels``, the label of the larger share.
 
     Args:
         logits: (B, K) class scores.
@@ -63,8 +67,12 @@ def total_loss(logits: torch.Tensor, embedding: torch.Tensor, labels: torch.Tens
         cer_lambda: weight lambda of the CER term.
         cer_tau: CER temperature tau.
         label_smoothing: smoothing of the cross-entropy's targets (0: plain L_cls as in the paper).
+        partner_labels: (B,) labels of the strokes blended in by mixup, or ``None`` (no mixup).
+        share: weight of ``labels`` in the blend, in [0, 1].
     """
     ce = F.cross_entropy(logits, labels, label_smoothing=label_smoothing)
+    if partner_labels is not None and share < 1.0:
+        ce = share * ce + (1.0 - share) * F.cross_entropy(logits, partner_labels, label_smoothing=label_smoothing)
     contrastive = cross_instance_contrastive_loss(embedding, labels, cer_tau)
     total = ce + cer_lambda * contrastive if cer_lambda > 0 else ce
     return LossTerms(total=total, ce=ce, contrastive=contrastive.detach() if cer_lambda <= 0 else contrastive)

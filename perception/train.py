@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+import scipy.stats
 import safetensors.torch
 import torch
 import torch.nn as nn
@@ -58,7 +59,7 @@ TEST_CORRUPTION_SEED_OFFSET = 12345
 PLACEMENT_FIELDS = ("device", "num_threads")
 # TrainConfig fields added after runs were stored, left out of a run's identity at the value those runs trained
 # with, so that adding a field does not make every stored run stale
-TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0}
+TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0, "mixup_alpha": 0.0}
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -158,6 +159,9 @@ class TrainConfig:
             every sample one band of consecutive feature channels and one span of consecutive valid steps are
             set to 0 (the training mean in normalised units), each as wide as a uniform share in
             [0, ``feature_mask``] of the channels or of the stroke's steps (:func:`mask_features`); 0 disables it.
+        mixup_alpha: training only: mixup (Zhang et al. 2018). Each batch is blended with a shuffled copy of
+            itself at a weight drawn from Beta(alpha, alpha) (:func:`mixup_batch`), and the cross-entropy is the
+            same blend of the two strokes' labels; CER keeps the label of the larger share. 0 disables it.
         model_overrides: (field, value) pairs passed to the model config (e.g. (("d_model", 32),)).
         ema_decay: keep an exponential moving average of the weights (Polyak averaging, decay per training step,
             :class:`torch.optim.swa_utils.AveragedModel`); validation, the best-epoch checkpoint and the resume
@@ -193,6 +197,7 @@ class TrainConfig:
     time_crop: float = 1.0
     ema_decay: float = 0.0
     feature_mask: float = 0.0
+    mixup_alpha: float = 0.0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -237,6 +242,8 @@ class TrainConfig:
             raise ValueError(f"time_crop must lie in (0, 1], got {self.time_crop}")
         if not 0.0 <= self.feature_mask < 1.0:
             raise ValueError(f"feature_mask must lie in [0, 1), got {self.feature_mask}")
+        if not (self.mixup_alpha >= 0.0 and math.isfinite(self.mixup_alpha)):
+            raise ValueError(f"mixup_alpha must be a finite number >= 0, got {self.mixup_alpha}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
         if not math.isfinite(self.corruption_std):
@@ -401,6 +408,46 @@ def mask_features(batch: FeatureBatch, max_share: float, generator: torch.Genera
         keep = ~(in_channels[:, None, :] | in_steps[:, :, None])  # (B, T, C)
         x[m] = xm * keep.to(xm.dtype)
     return dataclasses.replace(batch, x=x)
+
+
+@dataclass(frozen=True)
+class MixedBatch:
+    """A batch blended by :func:`mixup_batch`: ``batch.labels`` holds the label of the larger share.
+
+    Attributes:
+        batch: the blended features; a step is padding only where it is in both strokes, a modality present
+            where it is in either.
+        partner_labels: (B,) the label of the stroke each one was blended with.
+        share: weight of ``batch.labels`` in the blend, in [0.5, 1]; 1 is no blend.
+    """
+
+    batch: FeatureBatch
+    partner_labels: torch.Tensor
+    share: float
+
+
+def mixup_batch(batch: FeatureBatch, alpha: float, generator: torch.Generator) -> MixedBatch:
+    """Training augmentation: mixup (Zhang et al. 2018) on the normalised features.
+
+    One weight per batch, ``share = max(w, 1 - w)`` with ``w ~ Beta(alpha, alpha)`` (drawn from ``generator``
+    by inverting the Beta CDF with :func:`scipy.stats.beta.ppf`), and one random partner per stroke: every
+    modality becomes ``share * x + (1 - share) * x[partner]``. Padding and missing streams are 0, so a step one
+    stroke lacks takes the other's scaled values. ``alpha`` 0 returns the batch unblended (share 1, each stroke
+    its own partner) without drawing from ``generator``.
+    """
+    if batch.labels is None:
+        raise ValueError("mixup needs a labelled batch")
+    if alpha <= 0:
+        return MixedBatch(batch=batch, partner_labels=batch.labels, share=1.0)
+    u = float(torch.rand(1, generator=generator, dtype=torch.float64))
+    weight = float(scipy.stats.beta.ppf(u, alpha, alpha))
+    share = max(weight, 1.0 - weight)
+    partner = torch.randperm(batch.batch_size, generator=generator)  # (B,)
+    x = {m: share * batch.x[m] + (1.0 - share) * batch.x[m][partner] for m in MODALITIES}
+    padding = {m: batch.padding[m] & batch.padding[m][partner] for m in MODALITIES}
+    present = {m: batch.present[m] | batch.present[m][partner] for m in MODALITIES}
+    return MixedBatch(batch=dataclasses.replace(batch, x=x, padding=padding, present=present),
+                      partner_labels=batch.labels[partner], share=share)
 
 
 def drop_modalities(batch: FeatureBatch, prob: float, generator: torch.Generator) -> FeatureBatch:
@@ -815,11 +862,14 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             batch = mask_features(batch, config.feature_mask, gen)
             batch = add_feature_noise(batch, config.feature_noise_std, gen)
             batch = drop_modalities(batch, config.modality_dropout, gen)
-            batch = corrupt_batch(batch, config.corruption_ratio, config.corruption_std, gen).to(device)
+            batch = corrupt_batch(batch, config.corruption_ratio, config.corruption_std, gen)
+            mixed = mixup_batch(batch, config.mixup_alpha, gen)
+            batch = mixed.batch.to(device)
             out, unimodal = (model.forward_with_unimodal(batch) if getattr(model, "unimodal_heads", None) is not None
                              else (model(batch), None))
             terms = total_loss(out.logits, out.embedding, batch.labels, model_config.cer_lambda, model_config.cer_tau,
-                               label_smoothing=config.label_smoothing)
+                               label_smoothing=config.label_smoothing, partner_labels=mixed.partner_labels.to(device),
+                               share=mixed.share)
             loss = terms.total
             if unimodal is not None:
                 loss = loss + model_config.unimodal_lambda * unimodal_cross_entropy(unimodal, batch.labels,

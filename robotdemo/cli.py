@@ -97,6 +97,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
                          time_crop=args.time_crop, ema_decay=args.ema_decay, feature_mask=args.feature_mask,
+                         mixup_alpha=args.mixup,
                          corruption_ratio=args.corruption_ratio,
                          corruption_std=args.corruption_std,
                          model_overrides=overrides, feature_config=_feature_config(args.modalities))
@@ -342,6 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--feature-mask", type=float, default=0.0, metavar="SHARE",
                        help="training: SpecAugment-style masking, one band of channels and one span of steps of each "
                             "stream zeroed, each up to this share wide (default 0: off)")
+    train.add_argument("--mixup", type=float, default=0.0, metavar="ALPHA",
+                       help="training: mixup, each batch blended with a shuffled copy of itself at a Beta(ALPHA, "
+                            "ALPHA) weight, labels blended alike (default 0: off)")
     train.add_argument("--corruption-ratio", type=float, default=0.0, metavar="P",
                        help="robustness experiment: each modality of each stroke gets N(0, STD^2) noise (training "
                             "std units) with probability P, in training, validation and test (default 0)")

@@ -96,6 +96,20 @@ def test_total_loss_combines_terms():
     assert smooth.ce.item() == pytest.approx(0.9 * off.ce.item() + 0.1 * uniform.item(), rel=1e-6)
 
 
+def test_total_loss_blends_the_cross_entropy_of_mixup_partners_and_keeps_cer_on_the_larger_share():
+    gen = torch.Generator().manual_seed(5)
+    logits = torch.randn(6, 3, generator=gen)
+    emb = F.normalize(torch.randn(6, 4, generator=gen), dim=1)
+    y, partner = torch.tensor([0, 1, 2, 0, 1, 2]), torch.tensor([1, 1, 0, 2, 0, 2])
+    mixed = total_loss(logits, emb, y, cer_lambda=0.5, cer_tau=0.2, partner_labels=partner, share=0.7)
+    expected = 0.7 * F.cross_entropy(logits, y) + 0.3 * F.cross_entropy(logits, partner)
+    assert mixed.ce.item() == pytest.approx(expected.item(), rel=1e-6)
+    assert mixed.contrastive.item() == pytest.approx(cross_instance_contrastive_loss(emb, y, 0.2).item())
+    plain = total_loss(logits, emb, y, cer_lambda=0.5, cer_tau=0.2)
+    unblended = total_loss(logits, emb, y, cer_lambda=0.5, cer_tau=0.2, partner_labels=partner, share=1.0)
+    assert unblended.total.item() == plain.total.item()  # share 1: the partner does not count
+
+
 def test_unimodal_cross_entropy_averages_present_modalities_only():
     gen = torch.Generator().manual_seed(4)
     logits = torch.randn(3, 4, 5, generator=gen)  # (B, M, K)

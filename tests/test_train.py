@@ -16,7 +16,7 @@ from perception.features import collate, feature_dims, featurize
 from perception.baselines import build_model
 from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError, corrupt_batch,
                               cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
-                              mask_features, predict, run_identity, scheduled_lr, strokes_fingerprint, task_split,
+                              mask_features, mixup_batch, predict, run_identity, scheduled_lr, strokes_fingerprint, task_split,
                               train, train_command)
 from tests.test_dataset import make_material_strokes
 
@@ -281,6 +281,51 @@ def test_feature_mask_zeroes_one_channel_band_and_one_step_span_of_valid_steps()
         TrainConfig(feature_mask=1.0)
 
 
+def test_mixup_blends_each_stroke_with_a_partner_at_one_share_and_keeps_the_union_of_steps():
+    recs = make_material_strokes(4, n_categories=3, n_instances=2, n_objects=2, n_strokes=4, duration_s=0.2)
+    cfg = TrainConfig().feature_config
+    feats = [featurize(r, cfg) for r in recs]
+    feats[0] = {**feats[0], "accel": None}  # missing in one stroke: present where either has it
+    feats[1] = {m: (None if f is None else f[: max(1, len(f) // 2)]) for m, f in feats[1].items()}  # shorter
+    names = sorted(set(labels_of(recs, "ssmc")))
+    batch = collate(feats, feature_dims(cfg), labels=[names.index(c) for c in labels_of(recs, "ssmc")])
+    gen = torch.Generator().manual_seed(0)
+    off = mixup_batch(batch, 0.0, gen)
+    assert off.batch is batch and off.share == 1.0 and torch.equal(off.partner_labels, batch.labels)
+    assert torch.equal(gen.get_state(), torch.Generator().manual_seed(0).get_state())  # off: no draw
+    shares, partners_differ = [], False
+    for seed in range(20):
+        mixed = mixup_batch(batch, 0.4, torch.Generator().manual_seed(seed))
+        assert 0.5 <= mixed.share <= 1.0
+        shares.append(mixed.share)
+        for m in batch.x:
+            x, y = batch.x[m], mixed.batch.x[m]
+            assert torch.equal(mixed.batch.padding[m] | batch.padding[m], batch.padding[m])  # no step lost
+            assert bool(torch.all(mixed.batch.present[m] >= batch.present[m]))
+        assert torch.equal(mixed.batch.labels, batch.labels)  # the larger share keeps its label
+        partners_differ |= bool(torch.any(mixed.partner_labels != batch.labels))
+    assert partners_differ and min(shares) < 0.75 and max(shares) > 0.9  # Beta(0.4, 0.4): wide spread of shares
+    again = mixup_batch(batch, 0.4, torch.Generator().manual_seed(3))
+    mixed = mixup_batch(batch, 0.4, torch.Generator().manual_seed(3))
+    assert again.share == mixed.share and all(torch.equal(again.batch.x[m], mixed.batch.x[m]) for m in batch.x)
+    # the blend itself: with the partner order drawn the same way, x' = share x + (1 - share) x[partner]
+    gen = torch.Generator().manual_seed(3)
+    torch.rand(1, generator=gen, dtype=torch.float64)
+    partner = torch.randperm(batch.batch_size, generator=gen)
+    for m in batch.x:
+        expected = mixed.share * batch.x[m] + (1.0 - mixed.share) * batch.x[m][partner]
+        assert torch.allclose(mixed.batch.x[m], expected)
+        assert torch.equal(mixed.batch.padding[m], batch.padding[m] & batch.padding[m][partner])
+    assert torch.equal(mixed.partner_labels, batch.labels[partner])
+    with pytest.raises(ValueError, match="labelled"):
+        mixup_batch(dataclasses.replace(batch, labels=None), 0.4, gen)
+    assert "mixup_alpha" not in run_identity(TrainConfig(), 3)["config"]  # off: stored runs stay valid
+    assert run_identity(TrainConfig(mixup_alpha=0.2), 3)["config"]["mixup_alpha"] == 0.2
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="mixup_alpha"):
+            TrainConfig(mixup_alpha=bad)
+
+
 def test_modality_dropout_marks_streams_missing_and_keeps_one():
     recs = make_material_strokes(2, n_categories=2, n_instances=2, n_objects=2, n_strokes=16, duration_s=0.2)
     cfg = TrainConfig().feature_config
@@ -312,6 +357,14 @@ def test_modality_dropout_training_learns_and_predicts_without_sound(toy, tmp_pa
     preds = predict(ckpt.model, [toy["feats"][i] for i in toy["test"]], feature_dims(ckpt.feature_config),
                     stats=ckpt.norm_stats, drop=("sound",))
     assert np.all(np.isfinite(preds.logits)) and np.all(preds.alphas[:, 0] == 0)
+
+
+def test_mixup_training_learns_and_records_its_alpha(toy, tmp_path):
+    result = _fit(toy, _config(epochs=6, mixup_alpha=0.4), tmp_path / "mix")
+    assert _test_accuracy(toy, result.checkpoint_dir) >= 0.6  # chance is 1/3
+    assert all(np.isfinite(row["train_loss"]) for row in result.history)
+    ckpt = load_checkpoint(result.checkpoint_dir)
+    assert TrainConfig.from_dict(ckpt.meta["train_config"]).mixup_alpha == 0.4
 
 
 def test_resume_state_from_before_a_config_field_existed_is_resumed(toy, tmp_path):
