@@ -241,11 +241,18 @@ def test_time_crop_keeps_the_same_span_of_every_stream():
         TrainConfig(time_crop=0.0)
 
 
-def test_feature_mask_zeroes_one_channel_band_and_one_step_span_of_valid_steps():
-    recs = make_material_strokes(3, n_categories=2, n_instances=2, n_objects=2, n_strokes=8, duration_s=0.2)
+def _features_one_stream_missing(seed: int, n_categories: int, n_strokes: int):
+    """Toy strokes, the default front end and their features, with stroke 0's acceleration missing."""
+    recs = make_material_strokes(seed, n_categories=n_categories, n_instances=2, n_objects=2, n_strokes=n_strokes,
+                                 duration_s=0.2)
     cfg = TrainConfig().feature_config
     feats = [featurize(r, cfg) for r in recs]
-    feats[0] = {**feats[0], "accel": None}  # a missing stream stays missing
+    feats[0] = {**feats[0], "accel": None}
+    return recs, cfg, feats
+
+
+def test_feature_mask_zeroes_one_channel_band_and_one_step_span_of_valid_steps():
+    _, cfg, feats = _features_one_stream_missing(3, n_categories=2, n_strokes=8)  # a missing stream stays missing
     batch = collate(feats, feature_dims(cfg))
     gen = torch.Generator().manual_seed(0)
     assert mask_features(batch, 0.0, gen) is batch  # off: the batch as it is, and no draw from the generator
@@ -282,10 +289,7 @@ def test_feature_mask_zeroes_one_channel_band_and_one_step_span_of_valid_steps()
 
 
 def test_mixup_blends_each_stroke_with_a_partner_at_one_share_and_keeps_the_union_of_steps():
-    recs = make_material_strokes(4, n_categories=3, n_instances=2, n_objects=2, n_strokes=4, duration_s=0.2)
-    cfg = TrainConfig().feature_config
-    feats = [featurize(r, cfg) for r in recs]
-    feats[0] = {**feats[0], "accel": None}  # missing in one stroke: present where either has it
+    recs, cfg, feats = _features_one_stream_missing(4, n_categories=3, n_strokes=4)  # present where either has it
     feats[1] = {m: (None if f is None else f[: max(1, len(f) // 2)]) for m, f in feats[1].items()}  # shorter
     names = sorted(set(labels_of(recs, "ssmc")))
     batch = collate(feats, feature_dims(cfg), labels=[names.index(c) for c in labels_of(recs, "ssmc")])
