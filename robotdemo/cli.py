@@ -213,6 +213,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from perception.dataset import load_dataset
         from perception.reference_classifier import honesty_check
         result = {"data": args.data, **honesty_check(load_dataset(args.data).records, seed=args.seed)}
+    elif args.what == "statistics":
+        if not args.data:
+            raise RobotDemoError("bench statistics needs --data DIR (a data set folder)")
+        from perception.dataset import load_dataset
+        from perception.pooled_statistics import PooledStatisticsConfig, run_pooled_statistics
+        result = {"data": args.data, **run_pooled_statistics(load_dataset(args.data).records,
+                                                             PooledStatisticsConfig(read_test=args.read_test),
+                                                             progress=True)}
     elif args.what == "classifier":
         if not args.data:
             raise RobotDemoError("bench classifier needs --data DIR (the data set the checkpoint was trained on)")
@@ -406,12 +414,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
     bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo", "reference",
-                                         "classifier"])
+                                         "statistics", "classifier"])
     bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
                        "demo, classifier: the classifier (default robotdemo/checkpoints/touchformer_fire)")
     bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on (also each "
-                       "stream's own accuracy); classifier: the data set the checkpoint was trained on (its "
-                       "held-out part is used)")
+                       "stream's own accuracy); statistics: the data set whose training splits to fit on; "
+                       "classifier: the data set the checkpoint was trained on (its held-out part is used)")
+    bench.add_argument("--read-test", action="store_true",
+                       help="statistics: also score the test parts (by default the validation parts only, which "
+                            "the networks' epochs were chosen on)")
     bench.add_argument("--seeds", type=_positive_int, default=10, help="demo: number of seeds (fire environment)")
     bench.add_argument("--objects", type=_positive_int, default=6, help="demo: objects per seed")
     bench.add_argument("--oracle", action="store_true",
