@@ -27,13 +27,11 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 from sklearn.ensemble import HistGradientBoostingClassifier
-from sklearn.linear_model import LogisticRegression
-from sklearn.pipeline import Pipeline, make_pipeline
-from sklearn.preprocessing import StandardScaler
+from sklearn.pipeline import Pipeline
 from tqdm import tqdm
 
 from perception.features import FeatureConfig, StrokeFeatures, feature_dims, featurize
-from perception.reference_classifier import summary_features
+from perception.reference_classifier import ReferenceClassifier, ReferenceConfig, summary_features
 from perception.streams import MODALITIES, StrokeRecord
 
 FEATURE_SETS = ("reference", "pooled", "both")
@@ -104,8 +102,8 @@ def stroke_matrices(records: Sequence[StrokeRecord], config: FeatureConfig = Fea
 
 def make_classifier(name: str, seed: int) -> Pipeline | HistGradientBoostingClassifier:
     """A fresh classifier of :data:`CLASSIFIERS` (trees seeded by ``seed``)."""
-    if name == "logreg":
-        return make_pipeline(StandardScaler(), LogisticRegression(C=1.0, max_iter=5000))
+    if name == "logreg":  # the reference classifier's own pipeline, given more solver iterations for wider inputs
+        return ReferenceClassifier(ReferenceConfig(max_iter=5000)).pipeline
     if name == "trees":
         return HistGradientBoostingClassifier(random_state=seed)
     raise ValueError(f"unknown classifier {name!r}; expected one of {CLASSIFIERS}")
@@ -118,7 +116,9 @@ def _splits(config: PooledStatisticsConfig) -> list[tuple[str, int, int]]:
 
 
 def _accuracy_percent(pred: np.ndarray, truth: np.ndarray) -> float:
-    return round(100.0 * float(np.mean(pred == truth)), 2)
+    from perception.train import _accuracy
+
+    return round(100.0 * _accuracy(pred, truth), 2)
 
 
 def run_pooled_statistics(records: Sequence[StrokeRecord], config: PooledStatisticsConfig = PooledStatisticsConfig(),
@@ -135,12 +135,13 @@ def run_pooled_statistics(records: Sequence[StrokeRecord], config: PooledStatist
 
     matrices = stroke_matrices(records, progress=progress)
     splits = _splits(config)
+    labels = {task: np.array(labels_of(records, task)) for task in {task for task, _, _ in splits}}
     runs = []
     bar = tqdm(total=len(splits) * len(config.feature_sets) * len(config.classifiers), desc="fit", unit="fit",
                disable=not progress)
     for task, seed, fold in splits:
         train_idx, val_idx, test_idx = task_split(records, TrainConfig(task=task, seed=seed), fold)
-        y = np.array(labels_of(records, task))
+        y = labels[task]
         for features in config.feature_sets:
             x = matrices[features]
             for name in config.classifiers:
