@@ -23,7 +23,7 @@ import torch.nn as nn
 
 from perception.baselines import MODEL_REGISTRY
 from perception.atomic import atomic_write
-from perception.features import FeatureConfig, NormStats, feature_dims
+from perception.features import FeatureConfig, NormStats, feature_dims, frame_clock_s
 from perception.streams import MODALITIES
 
 FORMAT_NAME = "robotdemo-checkpoint"
@@ -72,6 +72,11 @@ def config_to_dict(config: Any) -> dict[str, Any]:
     return dataclasses.asdict(config)
 
 
+def tuplify(value: Any) -> Any:
+    """Lists (JSON's) and tuples as tuples, nested ones too; anything else as it is."""
+    return tuple(tuplify(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
 def config_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
     """Rebuild a (nested) frozen config dataclass from JSON data; lists become tuples. A field missing from
     ``data`` takes its default, or, where the class lists it in a ``SAVED_BEFORE`` class variable, the value
@@ -94,7 +99,7 @@ def config_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
         if dataclasses.is_dataclass(hint):
             kwargs[key] = config_from_dict(hint, value)
         else:
-            kwargs[key] = tuple(value) if isinstance(value, list) else value
+            kwargs[key] = tuplify(value)
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
@@ -201,6 +206,10 @@ def load_checkpoint(directory: str | os.PathLike, device: str | torch.device = "
     if tuple(model_config.in_dims) != tuple(dims[m] for m in MODALITIES):
         raise CheckpointError(config_path, f"model in_dims {tuple(model_config.in_dims)} do not match the "
                                            f"feature config's {tuple(dims[m] for m in MODALITIES)}")
+    clock = frame_clock_s(feature_config)
+    if getattr(model_config, "time_bias", False) and tuple(model_config.frame_clock_s) != clock:
+        raise CheckpointError(config_path, f"model frame_clock_s {tuple(model_config.frame_clock_s)} does not match "
+                                           f"the feature config's {clock}")
     for m in MODALITIES:
         if len(norm_stats.mean.get(m, ())) != dims[m] or len(norm_stats.std.get(m, ())) != dims[m]:
             raise CheckpointError(config_path, f"norm_stats for {m} do not have {dims[m]} channels")

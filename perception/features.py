@@ -121,6 +121,16 @@ def feature_dims(config: FeatureConfig) -> dict[str, int]:
     }
 
 
+def frame_clock_s(config: FeatureConfig) -> tuple[tuple[float, float], ...]:
+    """When each modality's frames lie on the stroke's clock, :data:`MODALITIES` order: (hop between frames,
+    centre of the first frame) in seconds, frame i centred at centre + i hop. Nominal: the front end rounds
+    window and hop to whole samples of the stream's rate, and a stream's first sample lies at its own ``t0_s``
+    (tens of milliseconds at most on our strokes), neither of which is known without the stream."""
+    spectral_or_taxel = {"sound": config.sound, "normal": config.normal, "friction": config.friction,
+                         "accel": config.accel}
+    return tuple((float(spectral_or_taxel[m].hop_s), float(spectral_or_taxel[m].window_s) / 2.0) for m in MODALITIES)
+
+
 # ----------------------------------------------------------------------------------------------------------
 # front ends
 

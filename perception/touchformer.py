@@ -40,6 +40,15 @@ Choices the paper leaves open, made here:
   pre-LayerNorm undoes the scale on Q, K and V) and, by default (``residual_base="gated"``), the residual
   too. So alpha_m weighs a sensor's own stream there, each source's cross-attention output (eq. 8) and the
   pooled feature (eq. 12). ``residual_base="plain"`` starts the residual from Z^[0] as eq. 9 writes it.
+- ``time_bias=True`` (off by default, not the paper's) adds -s_h |t_a - t_b| to the logits of each
+  cross-attention head h, with t the centre time of each frame on the stroke's clock in seconds
+  (``frame_clock_s``, from the front ends' hops: :func:`perception.features.frame_clock_s`) and s_h >= 0 a
+  learned slope per head and pair, started at :data:`TIME_BIAS_INIT_SLOPES_PER_S`. The sinusoidal PE counts
+  frames, and the four sensors' frames have different rates (21.5, 10, 10 and 7.8 per second), so frame i of
+  the sound and frame i of the friction are not the same instant; this gives every pair one clock to attend
+  by. On synthetic strokes whose class is only the timing of one sensor's event against another's
+  (``robotdemo bench timing``, :mod:`perception.timing_control`), the model without it fits its training
+  strokes and tests at chance; with it, it learns the task (docs/touchformer-findings.md, session 47).
 - Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
   attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
   with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real
@@ -61,6 +70,9 @@ from perception.streams import MODALITIES
 
 N_MOD = len(MODALITIES)
 GATE_POOLS = ("input", "hidden")
+TIME_BIAS_INIT_SLOPES_PER_S = (0.0, 2.0, 8.0, 32.0)
+"""``time_bias``: the slopes s_h [1/s] the cross-attention heads start from, cycled over the heads: one head
+blind to time, the others attending within about 0.5, 0.1 and 0.03 s of the target frame's instant."""
 RESIDUAL_BASES = ("gated", "plain")
 UNIMODAL_AT = ("pooled", "embedding")
 
@@ -124,13 +136,20 @@ class TouchFormerConfig:
         unimodal_at: what the heads of ``unimodal_lambda`` read: "pooled" (default), step 5's pooled feature,
             which the cross-attention of step 3 has already mixed with the other sensors; "embedding", the
             masked mean of step 1's Conv1D output X_m (after ``stem_dilations``), the sensor's own evidence alone.
+        time_bias: add -s_h |t_a - t_b| to each cross-attention head's logits, t the frames' centre times in
+            seconds (``frame_clock_s``) and s_h a learned slope per head and pair (module docstring). Off by
+            default (the paper's cross-attention sees the PE only).
+        frame_clock_s: per modality (:data:`MODALITIES` order), (hop between frames, centre of the first frame)
+            in seconds, :func:`perception.features.frame_clock_s` of the front ends; needed by ``time_bias``
+            (training fills it in), empty otherwise.
     """
 
     SAVED_BEFORE: ClassVar[dict[str, Any]] = {"final_norm": True}
     """Fields added after configs were first saved whose value in such a saved config is not the default:
     a checkpoint or run written before ``final_norm`` existed has the closing LayerNorm."""
 
-    IDENTITY_OMITS: ClassVar[dict[str, Any]] = {"unimodal_lambda": 0.0, "unimodal_at": "pooled"}
+    IDENTITY_OMITS: ClassVar[dict[str, Any]] = {"unimodal_lambda": 0.0, "unimodal_at": "pooled", "time_bias": False,
+                                                "frame_clock_s": ()}
     """Fields added after the evaluation's runs were stored, with the value that does what those runs did: a run
     identity (:func:`perception.train.run_identity`) leaves such a field out at that value, so the stored runs
     stay the runs the current code would train."""
@@ -160,6 +179,8 @@ class TouchFormerConfig:
     residual_base: str = "gated"
     unimodal_lambda: float = 0.0
     unimodal_at: str = "pooled"
+    time_bias: bool = False
+    frame_clock_s: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
         if len(self.in_dims) != N_MOD or len(self.kernel_sizes) != N_MOD:
@@ -190,6 +211,10 @@ class TouchFormerConfig:
             raise ValueError(f"unimodal_at must be one of {UNIMODAL_AT}, got {self.unimodal_at!r}")
         if self.residual_base not in RESIDUAL_BASES:
             raise ValueError(f"residual_base must be one of {RESIDUAL_BASES}, got {self.residual_base!r}")
+        if self.time_bias and not (len(self.frame_clock_s) == N_MOD and all(
+                len(c) == 2 and c[0] > 0 and math.isfinite(c[0]) and math.isfinite(c[1]) for c in self.frame_clock_s)):
+            raise ValueError(f"time_bias needs frame_clock_s: {N_MOD} (hop_s > 0, first frame centre_s) pairs, "
+                             f"got {self.frame_clock_s!r}")
 
 
 @dataclass(frozen=True)
@@ -295,6 +320,16 @@ def _thresholded_weights(gates: torch.Tensor, present: torch.Tensor, gate_th: fl
     return alphas * kept  # (B, M)
 
 
+def frame_times_s(config: TouchFormerConfig, lengths: dict[str, int], device: torch.device
+                  ) -> dict[str, torch.Tensor] | None:
+    """Centre time [s] of every frame of each modality on the stroke's clock, ``config.frame_clock_s``:
+    modality -> (T_m,) float32. None without ``time_bias``."""
+    if not config.time_bias:
+        return None
+    return {m: config.frame_clock_s[i][1] + config.frame_clock_s[i][0]
+            * torch.arange(lengths[m], device=device, dtype=torch.float32) for i, m in enumerate(MODALITIES)}
+
+
 def masked_max(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Maximum over valid time steps; 0 where a row has none. x (B, T, d), valid (B, T) -> (B, d)."""
     peak = x.masked_fill(~valid.unsqueeze(-1), float("-inf")).amax(dim=1)  # (B, d)
@@ -374,7 +409,10 @@ class Attention(nn.Module):
         self.proj = nn.Linear(d_model, d_model)
         self.dropout = dropout
 
-    def forward(self, q: torch.Tensor, kv: torch.Tensor, kv_valid: torch.Tensor) -> torch.Tensor:
+    def forward(self, q: torch.Tensor, kv: torch.Tensor, kv_valid: torch.Tensor,
+                bias: torch.Tensor | None = None) -> torch.Tensor:
+        """q (B, Tq, d) onto kv (B, Tk, d) with kv_valid (B, Tk); ``bias`` (h, Tq, Tk), if given, is added to
+        every head's logits (``time_bias``). Returns (B, Tq, d)."""
         b, tq, d = q.shape
         tk = kv.shape[1]
         h = self.n_heads
@@ -386,6 +424,8 @@ class Attention(nn.Module):
         kh = k.view(b, tk, h, d // h).transpose(1, 2)  # (B, h, Tk, d/h)
         vh = v.view(b, tk, h, d // h).transpose(1, 2)  # (B, h, Tk, d/h)
         mask = kv_valid[:, None, None, :]  # (B, 1, 1, Tk) True = attend
+        if bias is not None:  # additive logits, -inf at padded keys
+            mask = bias.to(q.dtype)[None].masked_fill(~mask, float("-inf"))  # (B, h, Tq, Tk)
         y = F.scaled_dot_product_attention(qh, kh, vh, attn_mask=mask,
                                            dropout_p=self.dropout if self.training else 0.0)  # (B, h, Tq, d/h)
         y = y.transpose(1, 2).reshape(b, tq, d)  # (B, Tq, d)
@@ -406,14 +446,25 @@ class MLP(nn.Module):
 class CrossModalAttention(nn.Module):
     """Y^_{a<-b} = softmax(Q_a K_b^T / sqrt(d_k)) V_b with pre-LayerNorm on target and source (MulT)."""
 
-    def __init__(self, d_model: int, n_heads: int, dropout: float) -> None:
+    def __init__(self, d_model: int, n_heads: int, dropout: float, time_bias: bool = False) -> None:
         super().__init__()
         self.ln_target = nn.LayerNorm(d_model)
         self.ln_source = nn.LayerNorm(d_model)
         self.attn = Attention(d_model, n_heads, dropout)
+        self.time_slope = (nn.Parameter(torch.tensor([TIME_BIAS_INIT_SLOPES_PER_S[i % len(TIME_BIAS_INIT_SLOPES_PER_S)]
+                                                      for i in range(n_heads)]))
+                           if time_bias else None)  # (h,) s_h [1/s], used as |s_h|
 
-    def forward(self, target: torch.Tensor, source: torch.Tensor, source_valid: torch.Tensor) -> torch.Tensor:
-        return self.attn(self.ln_target(target), self.ln_source(source), source_valid)  # (B, Ta, d)
+    def forward(self, target: torch.Tensor, source: torch.Tensor, source_valid: torch.Tensor,
+                time_gap_s: torch.Tensor | None = None) -> torch.Tensor:
+        """target (B, Ta, d) attends to source (B, Tb, d); ``time_gap_s`` (Ta, Tb) = |t_a - t_b| in seconds,
+        needed with ``time_bias``."""
+        bias = None
+        if self.time_slope is not None:
+            if time_gap_s is None:
+                raise ValueError("a time-biased cross-attention needs the frames' time gaps")
+            bias = -self.time_slope.abs()[:, None, None] * time_gap_s[None]  # (h, Ta, Tb)
+        return self.attn(self.ln_target(target), self.ln_source(source), source_valid, bias)  # (B, Ta, d)
 
 
 class SelfAttentionBlock(nn.Module):
@@ -465,7 +516,8 @@ class TouchFormer(nn.Module):
                                     for i, m in enumerate(MODALITIES)})
         self.emb_drop = nn.Dropout(c.emb_dropout)
         self.gate = ModalityGate(c.d_model, c.gate_hidden, c.gate_pool)
-        self.cross = nn.ModuleDict({f"{tgt}_from_{src}": CrossModalAttention(c.d_model, c.n_heads, c.attn_dropout)
+        self.cross = nn.ModuleDict({f"{tgt}_from_{src}": CrossModalAttention(c.d_model, c.n_heads, c.attn_dropout,
+                                                                             c.time_bias)
                                     for tgt in MODALITIES for src in MODALITIES if src != tgt})
         self.intra = nn.ModuleDict({m: IntraModalTransformer(c.d_model, c.n_heads, c.n_layers, c.dropout,
                                                              c.attn_dropout, c.final_norm)
@@ -509,12 +561,14 @@ class TouchFormer(nn.Module):
         base = z0 if c.residual_base == "gated" else plain
 
         # 3. inter-modal cross-attention, each source's output scaled by its alpha, plus residual
+        times = frame_times_s(c, {m: x_hat[m].shape[1] for m in MODALITIES}, x_hat[MODALITIES[0]].device)
         z_tilde = {}
         for tgt in MODALITIES:
             y = base[tgt]  # (B, T_tgt, d)
             for src in MODALITIES:
                 if src != tgt:
-                    y = y + a[src] * self.cross[f"{tgt}_from_{src}"](z0[tgt], z0[src], valid[src])  # (B, T_tgt, d)
+                    gap = None if times is None else (times[tgt][:, None] - times[src][None, :]).abs()  # (T_tgt, T_src)
+                    y = y + a[src] * self.cross[f"{tgt}_from_{src}"](z0[tgt], z0[src], valid[src], gap)  # (B, T_tgt, d)
             z_tilde[tgt] = y
 
         # 4. intra-modal self-attention

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from perception.features import FeatureBatch
 from perception.streams import MODALITIES
-from perception.touchformer import (N_MOD, CrossModalAttention, ModelOutput, TouchFormer, mag_weights,
+from perception.touchformer import (N_MOD, CrossModalAttention, ModelOutput, TouchFormer, frame_times_s, mag_weights,
                                     masked_max, masked_mean, sinusoidal_pe, uniform_weights)
 
 # (target, source) pairs grouped by target, MODALITIES order: pair p has target PAIR_TARGET[p]
@@ -83,6 +83,8 @@ class FusedTouchFormer(nn.Module):
             if c.final_norm:  # the intra-modal blocks' closing LayerNorm
                 self.lnf_w = torch.stack([model.intra[m].ln_f.weight for m in MODALITIES])[:, None, :]  # (M, 1, d)
                 self.lnf_b = torch.stack([model.intra[m].ln_f.bias for m in MODALITIES])[:, None, :]  # (M, 1, d)
+        self.time_slope = (torch.stack([m.time_slope.detach().abs() for m in cross])  # (12, h) |s_h| [1/s]
+                           if c.time_bias else None)
         self.src_index = torch.tensor(PAIR_SOURCE)
         self.tgt_index = torch.tensor(PAIR_TARGET)
         self._pe: dict[int, torch.Tensor] = {}
@@ -97,14 +99,29 @@ class FusedTouchFormer(nn.Module):
             self._pe[length] = sinusoidal_pe(length, self.config.d_model, torch.device("cpu"))
         return self._pe[length]  # (T, d)
 
-    def _attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torch.Tensor) -> torch.Tensor:
-        """Batched multi-head attention. q, k, v (P, B, T, d); key_valid (P, B, T) -> (P, B, T, d)."""
+    def _attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, key_valid: torch.Tensor,
+                bias: torch.Tensor | None = None) -> torch.Tensor:
+        """Batched multi-head attention. q, k, v (P, B, T, d); key_valid (P, B, T); ``bias`` (P, h, T, T) added
+        to the logits (``time_bias``) -> (P, B, T, d)."""
         p, b, t, d = q.shape
         h = self.config.n_heads
         heads = lambda x: x.reshape(p * b, t, h, d // h).transpose(1, 2)  # noqa: E731  (P B, h, T, d/h)
         mask = key_valid.reshape(p * b, 1, 1, t)  # True = attend
+        if bias is not None:
+            mask = (bias[:, None].expand(p, b, h, t, t).reshape(p * b, h, t, t).to(q.dtype)
+                    .masked_fill(~mask, float("-inf")))  # (P B, h, T, T)
         y = F.scaled_dot_product_attention(heads(q), heads(k), heads(v), attn_mask=mask)  # (P B, h, T, d/h)
         return y.transpose(1, 2).reshape(p, b, t, d)
+
+    def _time_bias(self, t_max: int) -> torch.Tensor | None:
+        """``time_bias``: (12, h, T, T) logits -|s_h| |t_target - t_source| of every pair, frames beyond a
+        modality's length included (their rows and keys are discarded or masked); None without it."""
+        if self.time_slope is None:
+            return None
+        times = frame_times_s(self.config, {m: t_max for m in MODALITIES}, torch.device("cpu"))
+        stacked = torch.stack([times[m] for m in MODALITIES])  # (M, T)
+        gap = (stacked[self.tgt_index][:, :, None] - stacked[self.src_index][:, None, :]).abs()  # (12, T, T)
+        return -self.time_slope[:, :, None, None] * gap[:, None]  # (12, h, T, T)
 
     @torch.no_grad()
     def forward(self, batch: FeatureBatch) -> ModelOutput:
@@ -135,7 +152,8 @@ class FusedTouchFormer(nn.Module):
         q = torch.baddbmm(self.q_b, n0[self.tgt_index], self.q_w)  # (12, B T, d)
         k, v = torch.baddbmm(self.kv_b, n0[self.src_index], self.kv_w).split(d, dim=-1)  # (12, B T, d) each
         shape = (len(PAIRS), b, t_max, d)
-        y = self._attend(q.reshape(shape), k.reshape(shape), v.reshape(shape), key_valid[self.src_index])
+        y = self._attend(q.reshape(shape), k.reshape(shape), v.reshape(shape), key_valid[self.src_index],
+                         self._time_bias(t_max))
         y = torch.baddbmm(self.cp_b, y.reshape(len(PAIRS), b * t_max, d), self.cp_w).reshape(shape)  # (12, B, T, d)
         y = y * alphas.t()[self.src_index][:, :, None, None]  # scaled by the source's alpha
         base = z0 if c.residual_base == "gated" else plain  # what the residual adds to (residual_base)

@@ -41,10 +41,10 @@ from perception.atomic import atomic_write
 from perception.baselines import MODEL_REGISTRY, build_model
 from perception.calibration import fit_temperature, nll
 from perception.checkpoint import (WEIGHTS_FILE, config_from_dict, config_to_dict, load_checkpoint, save_checkpoint,
-                                   set_temperature)
+                                   set_temperature, tuplify)
 from perception.dataset import TASKS, labels_of, sha256_file
 from perception.features import (FeatureBatch, FeatureConfig, NormStats, StrokeFeatures, collate, feature_dims,
-                                 featurize, fit_norm_stats, keep_modalities, normalize)
+                                 featurize, fit_norm_stats, frame_clock_s, keep_modalities, normalize)
 from perception.losses import total_loss, unimodal_cross_entropy
 from perception.streams import MODALITIES, StrokeRecord
 
@@ -222,7 +222,7 @@ class TrainConfig:
         if not (math.isfinite(self.feature_noise_std) and self.feature_noise_std >= 0):
             raise ValueError(f"feature_noise_std must be a number >= 0, got {self.feature_noise_std}")
         for key, value in self.model_overrides:
-            if key in ("in_dims", "n_classes"):
+            if key in ("in_dims", "n_classes", "frame_clock_s"):
                 raise ValueError(f"model option {key} comes from the data and its features, not from an option")
             if isinstance(value, float) and not math.isfinite(value):
                 raise ValueError(f"model option {key} must be finite, got {value}")
@@ -260,15 +260,21 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:
         data = dict(data)
-        data["model_overrides"] = tuple((str(k), _tuplify(v)) for k, v in data.get("model_overrides", ()))
+        data["model_overrides"] = tuple((str(k), tuplify(v)) for k, v in data.get("model_overrides", ()))
         fc = data.pop("feature_config", None)
         config = config_from_dict(cls, {k: v for k, v in data.items() if k != "model_overrides"})
         return dataclasses.replace(config, model_overrides=data["model_overrides"],
                                    feature_config=FeatureConfig() if fc is None else config_from_dict(FeatureConfig, fc))
 
 
-def _tuplify(value: Any) -> Any:
-    return tuple(_tuplify(v) for v in value) if isinstance(value, (list, tuple)) else value
+def model_overrides(config: TrainConfig) -> dict[str, Any]:
+    """The model config's fields that ``config`` sets: its ``model_overrides``, and with TouchFormer's
+    ``time_bias`` on, ``frame_clock_s`` from its front ends (:func:`perception.features.frame_clock_s`), which
+    is what the data gives, not an option."""
+    overrides = {k: tuplify(v) for k, v in config.model_overrides}
+    if overrides.get("time_bias"):
+        overrides["frame_clock_s"] = frame_clock_s(config.feature_config)
+    return overrides
 
 
 @dataclass(frozen=True)
@@ -661,8 +667,7 @@ def run_identity(config: TrainConfig, n_classes: int) -> dict[str, Any]:
     (:mod:`perception.run_store`)."""
     config_cls = MODEL_REGISTRY[config.model][0]
     in_dims = tuple(feature_dims(config.feature_config)[m] for m in MODALITIES)
-    overrides = {k: _tuplify(v) for k, v in config.model_overrides}
-    model_config = config_cls(in_dims=in_dims, n_classes=n_classes, **overrides)
+    model_config = config_cls(in_dims=in_dims, n_classes=n_classes, **model_overrides(config))
     model_json = _model_config_json(config_cls, config_to_dict(model_config))
     for name, value in getattr(config_cls, "IDENTITY_OMITS", {}).items():
         if model_json.get(name) == value:
@@ -798,8 +803,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     norm_val = [normalize(f, stats) for f in features_val]
 
     torch.manual_seed(config.seed)
-    overrides = {k: _tuplify(v) for k, v in config.model_overrides}
-    model_config, model = build_model(config.model, in_dims, len(names), **overrides)
+    model_config, model = build_model(config.model, in_dims, len(names), **model_overrides(config))
     if init is not None:
         model.load_state_dict(init.model.state_dict())
     model.to(device)

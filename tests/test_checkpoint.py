@@ -13,7 +13,7 @@ import torch
 from perception.baselines import MODEL_REGISTRY, build_model
 from perception.checkpoint import (CONFIG_FILE, WEIGHTS_FILE, CheckpointError, load_checkpoint, save_checkpoint,
                                   set_temperature)
-from perception.features import FeatureConfig, feature_dims, featurize, fit_norm_stats
+from perception.features import FeatureConfig, feature_dims, featurize, fit_norm_stats, frame_clock_s
 from perception.streams import MODALITIES
 from tests.test_baselines import TINY
 from tests.test_features import make_synthetic_strokes
@@ -79,6 +79,23 @@ def test_config_saved_before_final_norm_existed_loads_with_the_closing_layernorm
     robot = load_checkpoint(robot_dir)
     saved = json.loads((robot_dir / CONFIG_FILE).read_text())["model_config"]
     assert robot.model_config.final_norm == saved.get("final_norm", True)
+
+
+def test_time_biased_touchformer_round_trips_and_a_clock_other_than_its_front_ends_is_refused(tmp_path):
+    cfg = FeatureConfig()
+    torch.manual_seed(0)
+    config, model = build_model("touchformer", IN_DIMS, 3, time_bias=True, frame_clock_s=frame_clock_s(cfg),
+                                **TINY["touchformer"])
+    stats = fit_norm_stats([featurize(r, cfg) for r in make_synthetic_strokes(1, seed=30)], feature_dims(cfg))
+    save_checkpoint(tmp_path, "touchformer", model, config, cfg, stats, CLASSES)
+    loaded = load_checkpoint(tmp_path)
+    assert loaded.model_config == config and loaded.model_config.frame_clock_s == frame_clock_s(cfg)
+    batch = make_batch(seed=31, p_missing=0.2)
+    with torch.no_grad():
+        assert torch.equal(model.eval()(batch).logits, loaded.model(batch).logits)
+    # the frames' clock must be the front ends': a changed hop moves every frame's instant
+    _edit_config(tmp_path, lambda r: r["feature_config"]["accel"].update(hop_s=0.064))
+    _expect_error(tmp_path, CONFIG_FILE, "frame_clock_s")
 
 
 def test_missing_files(tmp_path):

@@ -13,9 +13,9 @@ import torch
 from perception.features import FeatureBatch, FeatureConfig, collate, feature_dims, featurize, fit_norm_stats
 from perception.losses import total_loss
 from perception.streams import MODALITIES
-from perception.touchformer import (GATE_POOLS, ModalityGate, ModelOutput, TouchFormer, TouchFormerConfig,
-                                    TouchFormerFusionConfig, TouchFormerMagConfig, TouchFormerSoftGateConfig,
-                                    mag_weights)
+from perception.touchformer import (GATE_POOLS, CrossModalAttention, ModalityGate, ModelOutput, TouchFormer,
+                                    TouchFormerConfig, TouchFormerFusionConfig, TouchFormerMagConfig,
+                                    TouchFormerSoftGateConfig, mag_weights)
 from tests.test_features import labels_of, make_synthetic_strokes
 
 torch.set_num_threads(2)
@@ -384,3 +384,31 @@ def test_embedding_heads_see_their_own_sensor_only():
         with torch.no_grad():
             a, b = model.forward_with_unimodal(batch)[1], model.forward_with_unimodal(other)[1]
         assert torch.allclose(a[:, friction], b[:, friction], atol=1e-6) == unchanged, at
+
+
+def test_time_bias_makes_a_steep_head_read_the_source_frame_nearest_in_time():
+    # frames of 0.1 s (target) against 0.25 s (source): with the query and key maps at zero, a head's
+    # logits are its time bias alone, so a steep slope picks the source frame closest to each target frame
+    torch.manual_seed(3)
+    cross = CrossModalAttention(d_model=8, n_heads=2, dropout=0.0, time_bias=True)
+    with torch.no_grad():
+        cross.attn.q.weight.zero_()
+        cross.attn.q.bias.zero_()
+        cross.time_slope.fill_(1e4)
+    t_target = 0.05 + 0.1 * torch.arange(10)  # (10,) s
+    t_source = 0.1 + 0.25 * torch.arange(4)  # (4,) s, no target frame halfway between two
+    gap = (t_target[:, None] - t_source[None, :]).abs()  # (10, 4)
+    target, source = torch.randn(1, 10, 8), torch.randn(1, 4, 8)
+    valid = torch.ones(1, 4, dtype=torch.bool)
+    with torch.no_grad():
+        out = cross(target, source, valid, gap)  # (1, 10, 8)
+        v = cross.attn.kv(cross.ln_source(source)).split(8, dim=-1)[1]  # (1, 4, 8)
+        expected = cross.attn.proj(v[:, gap.argmin(dim=1)])  # (1, 10, 8)
+    torch.testing.assert_close(out, expected, rtol=1e-4, atol=1e-5)
+    # the slopes are parameters: they learn, and a model without time_bias has none
+    assert cross.time_slope.requires_grad
+    assert CrossModalAttention(8, 2, 0.0).time_slope is None
+    with pytest.raises(ValueError, match="time gaps"):
+        cross(target, source, valid)
+    with pytest.raises(ValueError, match="frame_clock_s"):
+        tiny_config(time_bias=True)

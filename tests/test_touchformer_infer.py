@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from perception.baselines import build_model
-from perception.features import FeatureBatch
+from perception.features import FeatureBatch, FeatureConfig, frame_clock_s
 from perception.streams import MODALITIES
 from perception.touchformer import TouchFormer
 from perception.touchformer_infer import FusedTouchFormer, for_inference
@@ -35,7 +35,9 @@ def assert_same_outputs(model: TouchFormer, batch: FeatureBatch) -> None:
 @pytest.mark.parametrize("overrides", [{}, {"n_layers": 2, "n_heads": 4}, {"use_mag": False},
                                        {"gate_th": 0.6, "gate_temperature": 0.3}, {"max_pool": True},
                                        {"stem_dilations": (1, 2)}, {"gate_pool": "hidden"}, {"head_mlp": True},
-                                       {"final_norm": False}, {"final_norm": True}, {"residual_base": "plain"}])
+                                       {"final_norm": False}, {"final_norm": True}, {"residual_base": "plain"},
+                                       {"time_bias": True, "frame_clock_s": frame_clock_s(FeatureConfig()),
+                                        "n_heads": 4}])
 def test_fused_matches_reference_with_padding_and_missing_modalities(overrides):
     # p_missing drops streams per stroke; strokes differ in length, so every modality is padded in the batch
     batch = make_batch(seed=3, n_per_class=4, p_missing=0.3)

@@ -12,11 +12,13 @@ import torch
 
 from perception.checkpoint import load_checkpoint
 from perception.dataset import labels_of, ssmc_split, validation_split, write_dataset
-from perception.features import collate, feature_dims, featurize
+from perception.features import FeatureConfig, collate, feature_dims, featurize, frame_clock_s
 from perception.baselines import build_model
+from perception.streams import MODALITIES
 from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError, corrupt_batch,
                               cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
-                              mask_features, mixup_batch, predict, run_identity, scheduled_lr, strokes_fingerprint, task_split,
+                              mask_features, mixup_batch, model_overrides, predict, run_identity, scheduled_lr,
+                              strokes_fingerprint, task_split,
                               train, train_command)
 from tests.test_dataset import make_material_strokes
 
@@ -449,6 +451,19 @@ def test_unknown_model_option_names_the_field():
         build_model("touchformer", (4, 4, 4, 4), 3, d_modle=32)
 
 
+def test_time_bias_takes_its_clock_from_the_front_ends_never_from_an_option():
+    fast = dataclasses.replace(FeatureConfig().accel, hop_s=0.064)
+    cfg = TrainConfig(model_overrides=(("time_bias", True),),
+                      feature_config=dataclasses.replace(FeatureConfig(), accel=fast))
+    clock = model_overrides(cfg)["frame_clock_s"]
+    assert clock == frame_clock_s(cfg.feature_config) and clock[MODALITIES.index("accel")][0] == 0.064
+    assert run_identity(cfg, 3)["model_config"]["frame_clock_s"] == [list(c) for c in clock]
+    assert "frame_clock_s" not in model_overrides(TrainConfig())
+    assert "time_bias" not in run_identity(TrainConfig(), 3)["model_config"]  # the stored runs' identity is kept
+    with pytest.raises(ValueError, match="frame_clock_s comes from the data"):
+        TrainConfig(model_overrides=(("frame_clock_s", ((0.1, 0.1),) * 4),))
+
+
 def test_config_validation_and_round_trip():
     with pytest.raises(ValueError, match="unknown model"):
         TrainConfig(model="nope")
@@ -609,8 +624,6 @@ def test_training_on_a_subset_of_sensors_ignores_the_others(toy, tmp_path):
 
 def test_modalities_option_is_validated_and_old_configs_keep_all_four(tmp_path, capsys):
     from perception.checkpoint import config_from_dict
-    from perception.features import FeatureConfig
-    from perception.streams import MODALITIES
     from robotdemo.cli import main
 
     for bad in ((), ("sound", "smell"), ("sound", "sound")):
