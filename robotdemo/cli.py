@@ -221,6 +221,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         result = {"data": args.data, **run_pooled_statistics(load_dataset(args.data).records,
                                                              PooledStatisticsConfig(read_test=args.read_test),
                                                              progress=True)}
+    elif args.what == "timing":
+        from perception.timing_control import TimingControlConfig, run_timing_control
+        result = run_timing_control(TimingControlConfig(n_train=args.n or 1000), progress=True)
     elif args.what == "classifier":
         if not args.data:
             raise RobotDemoError("bench classifier needs --data DIR (the data set the checkpoint was trained on)")
@@ -414,7 +417,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
     bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo", "reference",
-                                         "statistics", "classifier"])
+                                         "statistics", "classifier", "timing"])
     bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
                        "demo, classifier: the classifier (default robotdemo/checkpoints/touchformer_fire)")
     bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on (also each "
@@ -429,7 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="demo: classify with the true labels (the robot's handling alone; a diagnostic)")
     bench.add_argument("--n", type=_positive_int, default=None,
                        help="ik, trajectory: poses / plans (default 1000); inference: strokes (default 200); "
-                            "emulation: strokes (default 6)")
+                            "emulation: strokes (default 6); timing: training strokes per seed (default 1000)")
     bench.add_argument("--seed", type=_non_negative_int, default=0)
     bench.add_argument("--stroke-s", type=float, default=1.0,
                        help="inference: length of the synthetic stroke, s (the data sets' median is about 2.2)")
