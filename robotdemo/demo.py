@@ -7,7 +7,8 @@ real-time factor) is written atomically, also when the run fails midway (then wi
 error). With ``viewer`` or ``record_path`` the scene is mirrored in :mod:`robotdemo.viewer` (if Meshcat is
 available; otherwise the demo says so and goes on headless; a live server that cannot start leaves the recording).
 ``realtime`` paces the run to the wall clock and ``hold`` keeps the live view served after it, for people
-watching from another machine.
+watching from another machine. Ctrl-C stops the sorting at the tick it comes in, even where a library swallows the
+KeyboardInterrupt (:class:`_InterruptLatch`); the report and the replay are still written.
 
 Typical use::
 
@@ -17,8 +18,10 @@ Typical use::
 from __future__ import annotations
 
 import io
+import signal
 import statistics
 import sys
+import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -132,6 +135,40 @@ def _hold(viewer: Any, out: TextIO) -> None:
         print("meshcat: stopped", file=out)
 
 
+class _InterruptLatch:
+    """Ctrl-C stops the sorting loop even where a library swallows the KeyboardInterrupt.
+
+    Python raises KeyboardInterrupt wherever the main thread happens to be when SIGINT arrives; inside a
+    dependency's bare ``except:`` (or a C-level ``hasattr``) it is lost and the run would go on to the end. While
+    the latch is held, SIGINT also sets a flag that :meth:`check` turns into a KeyboardInterrupt once per tick.
+    It takes over only Python's default handler, in the main thread, and puts it back on exit.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def __enter__(self) -> "_InterruptLatch":
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.requested = True
+        raise KeyboardInterrupt
+
+    def check(self) -> None:
+        """Raise KeyboardInterrupt if Ctrl-C came while the latch was held (however it was handled then)."""
+        if self.requested:
+            raise KeyboardInterrupt
+
+
 def _taxel_normals(machine: SortingMachine) -> np.ndarray | None:
     """The 16 taxel normal forces of the current stroke's last physics step (for the viewer), N."""
     stroke = machine.stroke_execution
@@ -196,22 +233,24 @@ def run_demo(config: DemoConfig, classifier: Classifier | None = None, out: Text
         reported: set[str] = set()
         sim_start = scene.sim.time_s
         loop_start = time.perf_counter()
-        while not machine.done:
-            machine.step()
-            if viewer is not None:
-                # the viewer calls it only for the frames it draws
-                viewer.update(scene, taxel_normal_n=lambda: _taxel_normals(machine), labels=machine.labels())
-            if config.realtime:  # no faster than the wall clock
-                ahead_s = (scene.sim.time_s - sim_start) - (time.perf_counter() - loop_start)
-                if ahead_s > 0:
-                    time.sleep(ahead_s)
-            for name, d in machine.decisions.items():
-                if d.end_time_s is not None and name not in reported:
-                    reported.add(name)
-                    print(_object_line(d), file=out, flush=True)
-            if scene.sim.time_s - sim_start > config.max_sim_s:
-                raise RobotDemoError(f"sorting took more than {config.max_sim_s:g} simulated seconds")
-            loop_wall = time.perf_counter() - loop_start
+        with _InterruptLatch() as interrupt:
+            while not machine.done:
+                machine.step()
+                if viewer is not None:
+                    # the viewer calls it only for the frames it draws
+                    viewer.update(scene, taxel_normal_n=lambda: _taxel_normals(machine), labels=machine.labels())
+                if config.realtime:  # no faster than the wall clock
+                    ahead_s = (scene.sim.time_s - sim_start) - (time.perf_counter() - loop_start)
+                    if ahead_s > 0:
+                        time.sleep(ahead_s)
+                for name, d in machine.decisions.items():
+                    if d.end_time_s is not None and name not in reported:
+                        reported.add(name)
+                        print(_object_line(d), file=out, flush=True)
+                if scene.sim.time_s - sim_start > config.max_sim_s:
+                    raise RobotDemoError(f"sorting took more than {config.max_sim_s:g} simulated seconds")
+                loop_wall = time.perf_counter() - loop_start
+                interrupt.check()
         report["status"] = "done"
     except BaseException as exc:
         report["status"] = "error"

@@ -139,6 +139,39 @@ def test_hold_serves_until_ctrl_c(monkeypatch):
                                            "meshcat: stopped"]
 
 
+def test_ctrl_c_that_a_library_swallows_still_stops_the_demo_at_that_tick(tiny_checkpoint, tmp_path):
+    """SIGINT raises KeyboardInterrupt wherever the main thread is; inside a dependency's bare ``except:`` it
+    would be lost and the run would sort every object. The demo's loop still stops at the tick it came in."""
+    import os
+    import signal
+    import time
+
+    from robotdemo.demo import DemoConfig, run_demo
+
+    classify = TouchFormerClassifier.from_checkpoint(tiny_checkpoint)
+    calls = []
+
+    def swallowing(record):
+        calls.append(record)
+        try:  # a library's bare except around work that Ctrl-C interrupts
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        except BaseException:  # noqa: BLE001 - swallowing it is the point
+            pass
+        return classify(record)
+
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    report_path = tmp_path / "report.json"
+    with pytest.raises(KeyboardInterrupt):
+        run_demo(DemoConfig(n_objects=2, seed=0, checkpoint=tiny_checkpoint, report_path=report_path),
+                 classifier=swallowing, out=io.StringIO())
+    assert len(calls) == 1  # the first classification's tick, not the end of the run
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+    report = json.loads(report_path.read_text())
+    assert report["status"] == "error" and report["error"] == "KeyboardInterrupt"
+    assert sum(o["zone_reached"] is not None for o in report["objects"]) == 0
+
+
 def test_demo_writes_a_partial_report_when_the_run_fails(tiny_checkpoint, tmp_path, capsys, monkeypatch):
     real_step = sorting.SortingMachine.step
 
