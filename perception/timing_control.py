@@ -35,6 +35,7 @@ from perception.baselines import MODEL_REGISTRY, build_model
 from perception.features import FeatureConfig, StrokeFeatures, collate, feature_dims, frame_clock_s
 from perception.losses import total_loss
 from perception.streams import MODALITIES
+from perception.train import cosine_lr, with_frame_clock
 
 EVENT_CHANNELS = 4
 """Feature channels each event raises."""
@@ -138,10 +139,9 @@ def train_and_test(name: str, options: dict[str, Any], seed: int, config: Timing
     dims = feature_dims(config.feature_config)
     train, y_train = timing_strokes(config.n_train, 2 * seed, config)
     test, y_test = timing_strokes(config.n_test, 2 * seed + 1, config)
-    if options.get("time_bias"):
-        options = {**options, "frame_clock_s": frame_clock_s(config.feature_config)}
     torch.manual_seed(seed)
-    model_config, model = build_model(name, tuple(dims[m] for m in MODALITIES), 2, **options)
+    model_config, model = build_model(name, tuple(dims[m] for m in MODALITIES), 2,
+                                      **with_frame_clock(options, config.feature_config))
     cer_lambda, cer_tau = getattr(model_config, "cer_lambda", 0.0), getattr(model_config, "cer_tau", 0.2)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     order_rng = np.random.default_rng(seed)
@@ -154,7 +154,7 @@ def train_and_test(name: str, options: dict[str, Any], seed: int, config: Timing
         pick = order[(step % steps_per_epoch) * config.batch_size:][:config.batch_size]
         batch = collate([train[i] for i in pick], dims, labels=y_train[pick])
         for group in optimizer.param_groups:
-            group["lr"] = config.lr * 0.5 * (1.0 + math.cos(math.pi * step / total))
+            group["lr"] = cosine_lr(config.lr, step, total)
         out = model(batch)
         loss = total_loss(out.logits, out.embedding, batch.labels, cer_lambda, cer_tau).total
         optimizer.zero_grad()

@@ -267,14 +267,19 @@ class TrainConfig:
                                    feature_config=FeatureConfig() if fc is None else config_from_dict(FeatureConfig, fc))
 
 
+def with_frame_clock(options: Mapping[str, Any], feature_config: FeatureConfig) -> dict[str, Any]:
+    """Model options plus, with TouchFormer's ``time_bias`` on, ``frame_clock_s`` from the front ends
+    (:func:`perception.features.frame_clock_s`), which is what the data gives, not an option."""
+    options = dict(options)
+    if options.get("time_bias"):
+        options["frame_clock_s"] = frame_clock_s(feature_config)
+    return options
+
+
 def model_overrides(config: TrainConfig) -> dict[str, Any]:
-    """The model config's fields that ``config`` sets: its ``model_overrides``, and with TouchFormer's
-    ``time_bias`` on, ``frame_clock_s`` from its front ends (:func:`perception.features.frame_clock_s`), which
-    is what the data gives, not an option."""
-    overrides = {k: tuplify(v) for k, v in config.model_overrides}
-    if overrides.get("time_bias"):
-        overrides["frame_clock_s"] = frame_clock_s(config.feature_config)
-    return overrides
+    """The model config's fields that ``config`` sets: its ``model_overrides``, with the frames' clock
+    (:func:`with_frame_clock`)."""
+    return with_frame_clock({k: tuplify(v) for k, v in config.model_overrides}, config.feature_config)
 
 
 @dataclass(frozen=True)
