@@ -109,7 +109,7 @@ def make_classifier(name: str, seed: int) -> Pipeline | HistGradientBoostingClas
     raise ValueError(f"unknown classifier {name!r}; expected one of {CLASSIFIERS}")
 
 
-def _splits(config: PooledStatisticsConfig) -> list[tuple[str, int, int]]:
+def splits_of(config: PooledStatisticsConfig) -> list[tuple[str, int, int]]:
     """(task, seed, fold) of every split to run."""
     return ([("ssmc", s, 0) for s in config.ssmc_seeds] + [("usmc", 0, k) for k in config.usmc_folds]
             + [("fine", s, 0) for s in config.fine_seeds])
@@ -130,35 +130,57 @@ def run_pooled_statistics(records: Sequence[StrokeRecord], config: PooledStatist
         [, "n_test", "test_accuracy_pct"]}, ...], "means": {task: {features: {classifier: {"val_accuracy_pct"
         [, "test_accuracy_pct"]}}}}, "read_test": bool}. Accuracies in percent.
     """
+    matrices = stroke_matrices(records, progress=progress)
+    return score_on_splits(records, {name: matrices[name] for name in config.feature_sets}, config, progress)
+
+
+def score_on_splits(records: Sequence[StrokeRecord], matrices: Mapping[str, np.ndarray],
+                    config: PooledStatisticsConfig, progress: bool = False) -> dict[str, Any]:
+    """Fit each of ``config.classifiers`` on every split's training part of each matrix (name -> (N, D), one row
+    per record) and score its validation part (and test part with ``config.read_test``); the result as
+    :func:`run_pooled_statistics`'s, with the matrices' names as the feature sets."""
     from perception.dataset import labels_of
     from perception.train import TrainConfig, task_split
 
-    matrices = stroke_matrices(records, progress=progress)
-    splits = _splits(config)
+    for name, x in matrices.items():
+        if x.shape[0] != len(records):
+            raise ValueError(f"feature matrix {name!r} has {x.shape[0]} rows for {len(records)} strokes")
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"feature matrix {name!r} holds NaN or infinite values")
+    splits = splits_of(config)
     labels = {task: np.array(labels_of(records, task)) for task in {task for task, _, _ in splits}}
     runs = []
-    bar = tqdm(total=len(splits) * len(config.feature_sets) * len(config.classifiers), desc="fit", unit="fit",
+    bar = tqdm(total=len(splits) * len(matrices) * len(config.classifiers), desc="fit", unit="fit",
                disable=not progress)
     for task, seed, fold in splits:
         train_idx, val_idx, test_idx = task_split(records, TrainConfig(task=task, seed=seed), fold)
         y = labels[task]
-        for features in config.feature_sets:
-            x = matrices[features]
+        for features, x in matrices.items():
             for name in config.classifiers:
-                clf = make_classifier(name, seed).fit(x[train_idx], y[train_idx])
-                run = {"task": task, "seed": seed, "fold": fold, "features": features, "classifier": name,
-                       "n_train": int(len(train_idx)), "n_val": int(len(val_idx)),
-                       "val_accuracy_pct": _accuracy_percent(clf.predict(x[val_idx]), y[val_idx])}
-                if config.read_test:
-                    run["n_test"] = int(len(test_idx))
-                    run["test_accuracy_pct"] = _accuracy_percent(clf.predict(x[test_idx]), y[test_idx])
-                runs.append(run)
+                runs.append(score_split((task, seed, fold), (train_idx, val_idx, test_idx), y, features, x, name,
+                                        config.read_test))
                 bar.update()
     bar.close()
-    return {"runs": runs, "means": _means(runs), "read_test": config.read_test}
+    return {"runs": runs, "means": means_of(runs), "read_test": config.read_test}
 
 
-def _means(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+def score_split(split: tuple[str, int, int], parts: tuple[np.ndarray, np.ndarray, np.ndarray], y: np.ndarray,
+                features: str, x: np.ndarray, classifier: str, read_test: bool) -> dict[str, Any]:
+    """Fit ``classifier`` on the training rows of ``x`` (``parts``: training, validation and test indices of the
+    split ``(task, seed, fold)``) and score the validation rows, and the test rows with ``read_test``; one run
+    of :func:`score_on_splits`'s result."""
+    (task, seed, fold), (train_idx, val_idx, test_idx) = split, parts
+    clf = make_classifier(classifier, seed).fit(x[train_idx], y[train_idx])
+    run = {"task": task, "seed": seed, "fold": fold, "features": features, "classifier": classifier,
+           "n_train": int(len(train_idx)), "n_val": int(len(val_idx)),
+           "val_accuracy_pct": _accuracy_percent(clf.predict(x[val_idx]), y[val_idx])}
+    if read_test:
+        run["n_test"] = int(len(test_idx))
+        run["test_accuracy_pct"] = _accuracy_percent(clf.predict(x[test_idx]), y[test_idx])
+    return run
+
+
+def means_of(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Mean accuracy over the seeds or folds of each (task, feature set, classifier)."""
     means: dict[str, Any] = {}
     keys = ("val_accuracy_pct", "test_accuracy_pct")

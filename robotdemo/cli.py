@@ -221,6 +221,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         result = {"data": args.data, **run_pooled_statistics(load_dataset(args.data).records,
                                                              PooledStatisticsConfig(read_test=args.read_test),
                                                              progress=True)}
+    elif args.what == "parameters":
+        if not args.data:
+            raise RobotDemoError("bench parameters needs --data DIR (a data set recorded by robotdemo dataset)")
+        _output_file(args.plot, "--plot")
+        from robotdemo.benchmarks.parameters_bench import run_parameters_benchmark
+        result = run_parameters_benchmark(args.data, read_test=args.read_test)
+        if args.plot:
+            from perception.parameter_probe import plot_parameter_probe
+            result["plot"] = str(plot_parameter_probe(args.plot, result))
     elif args.what == "timing":
         from perception.timing_control import TimingControlConfig, run_timing_control
         result = run_timing_control(TimingControlConfig(n_train=args.n or 1000), progress=True)
@@ -417,14 +426,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
     bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo", "reference",
-                                         "statistics", "classifier", "timing"])
+                                         "statistics", "parameters", "classifier", "timing"])
     bench.add_argument("--checkpoint", default=None, help="inference: a checkpoint folder (default: a fresh model); "
                        "demo, classifier: the classifier (default robotdemo/checkpoints/touchformer_fire)")
     bench.add_argument("--data", default=None, help="reference: the data set to run the honesty check on (also each "
-                       "stream's own accuracy); statistics: the data set whose training splits to fit on; "
+                       "stream's own accuracy); statistics, parameters: the data set whose training splits to fit on; "
                        "classifier: the data set the checkpoint was trained on (its held-out part is used)")
     bench.add_argument("--read-test", action="store_true",
-                       help="statistics: also score the test parts (by default the validation parts only, which "
+                       help="statistics, parameters: also score the test parts (by default the validation parts only, which "
                             "the networks' epochs were chosen on)")
     bench.add_argument("--seeds", type=_positive_int, default=10, help="demo: number of seeds (fire environment)")
     bench.add_argument("--objects", type=_positive_int, default=6, help="demo: objects per seed")
@@ -440,6 +449,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="stroke: on the data set's fixture (the object clamped and free of the table)")
     bench.add_argument("--solver-iterations", default="100", metavar="N[,N...]",
                        help="stroke: the physics solver's iterations per step, one run per count (default 100)")
+    bench.add_argument("--plot", default=None, metavar="FILE.png",
+                       help="parameters: also draw the recovery and the oracle as a PNG")
     bench.add_argument("--json", action="store_true")
     bench.set_defaults(func=_cmd_bench)
     return parser

@@ -36,7 +36,8 @@ from controllers.stroke import StrokeConfig
 from controllers.trajectory import TrajectoryError
 from perception.atomic import atomic_write_json
 from perception.contact_trace import ObjectInfo
-from perception.materials import Material, MaterialCatalogue, contact_dynamics, default_catalogue, sample_material
+from perception.materials import (Material, MaterialCatalogue, MaterialSample, contact_dynamics, default_catalogue,
+                                  sample_material)
 from perception.numerics import numeric_environment, numerics_differences
 from perception.recording_io import write_strokes
 from perception.streams import StrokeRecord
@@ -124,6 +125,44 @@ def _stroke_planner(config: DatasetConfig) -> SortingConfig:
                          stroke_length_m=config.length_range_m, stroke_max_slide_s=config.max_slide_s)
 
 
+def draw_object(material: Material, object_seed: int, name: str = "sample") -> ObjectSpec:
+    """One recorded object, drawn from its own seed alone (the ``surface_seed`` in each of its strokes' meta): its
+    shape and size as the sorting scene draws them, its physical parameters around ``material``
+    (:func:`perception.materials.sample_material`), and where and at what yaw it is dropped on the table."""
+    obj_rng = np.random.default_rng(object_seed)
+    kind = SHAPES[int(obj_rng.integers(len(SHAPES)))]  # the sorting scene's shapes and sizes
+    size = draw_object_size(kind, obj_rng)
+    sample = sample_material(material, obj_rng)
+    return ObjectSpec(name=name, shape=kind, size_m=size,
+                      xy_m=(float(obj_rng.uniform(-0.26, -0.16)), float(obj_rng.uniform(-0.08, 0.08))),
+                      yaw_rad=float(obj_rng.uniform(-math.pi / 2, math.pi / 2)), material=sample,
+                      dynamics=contact_dynamics(sample, size, body_shape(kind)))
+
+
+def drawn_material(record: StrokeRecord, catalogue: MaterialCatalogue | None = None) -> MaterialSample:
+    """The physical parameters of the object a recorded stroke touched, drawn again from the seed in its meta
+    (:func:`draw_object`); the strokes themselves do not store them. For diagnostics that ask how much of the
+    material the sensors keep (``robotdemo bench parameters``).
+
+    Raises:
+        RobotDemoError: the stroke's meta lacks the seed or size, its instance is not in the catalogue, or the
+            object drawn again is not the recorded one (its size differs: other code or another catalogue).
+    """
+    catalogue = catalogue or default_catalogue()
+    seed, size = record.meta.get("surface_seed"), record.meta.get("size_m")
+    if seed is None or size is None:
+        raise RobotDemoError(f"stroke of {record.instance!r} has no surface_seed or size_m in its meta: "
+                             "not recorded by robotdemo dataset")
+    if record.instance not in catalogue.instances:
+        raise RobotDemoError(f"stroke's instance {record.instance!r} is not in the material catalogue")
+    spec = draw_object(catalogue.instance(record.instance), int(seed))
+    if not np.allclose(spec.size_m, [float(v) for v in size], rtol=0.0, atol=1e-12):
+        raise RobotDemoError(f"stroke {record.meta.get('object_id', '?')} of {record.instance!r}: the object drawn "
+                             f"again from its seed is {spec.size_m} m, the recorded one {list(size)} m; the data "
+                             "were recorded by other code or with another catalogue")
+    return spec.material
+
+
 def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalogue | None = None,
                  failures: Counter | None = None) -> list[StrokeRecord]:
     """All strokes of one instance (deterministic in ``config.seed`` and ``job.index``); each failed attempt's
@@ -141,15 +180,8 @@ def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalo
         if n_strokes == 0:
             continue
         object_seed = int(rng.integers(2**31))
-        obj_rng = np.random.default_rng(object_seed)
-        kind = SHAPES[int(obj_rng.integers(len(SHAPES)))]  # the sorting scene's shapes and sizes
-        size = draw_object_size(kind, obj_rng)
-        sample = sample_material(material, obj_rng)
-        shape = body_shape(kind)
-        spec = ObjectSpec(name=f"{job.instance}_{obj_index}", shape=kind, size_m=size,
-                          xy_m=(float(obj_rng.uniform(-0.26, -0.16)), float(obj_rng.uniform(-0.08, 0.08))),
-                          yaw_rad=float(obj_rng.uniform(-math.pi / 2, math.pi / 2)), material=sample,
-                          dynamics=contact_dynamics(sample, size, shape))
+        spec = draw_object(material, object_seed, name=f"{job.instance}_{obj_index}")
+        kind, size, sample, shape = spec.shape, spec.size_m, spec.material, body_shape(spec.shape)
         object_id = f"{config.seed}-{job.index}-{obj_index}"
         info = ObjectInfo(material=sample, size_m=size, shape=shape, surface_seed=object_seed)
         # One object, touched by every stroke: sleeping would save nothing (and the data stay those of the

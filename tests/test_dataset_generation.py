@@ -181,3 +181,32 @@ def test_shard_strokes_the_clamped_sample_at_the_configured_iterations(monkeypat
     records = dataset.record_shard(dataset.plan_jobs(config, dataset.default_catalogue())[0], config)
     assert len(records) == 1 and seen == [(60, 60, 0)]
     assert DatasetConfig().solver_iterations == 75
+
+
+def test_drawn_material_is_the_recorded_objects_own_draw(monkeypatch):
+    """``drawn_material`` draws each stroke's object again from the seed in its meta: the very sample that
+    ``record_shard`` handed the simulator and the emulation, and it refuses a stroke whose object it cannot
+    draw again."""
+    import dataclasses
+
+    drawn = []
+    sample_material = dataset.sample_material
+
+    def spy(material, rng):
+        drawn.append(sample_material(material, rng))
+        return drawn[-1]
+
+    monkeypatch.setattr(dataset, "sample_material", spy)
+    config = DatasetConfig(**{**FAST, "instances": ("pine",), "strokes_per_instance": 2, "objects_per_instance": 2})
+    records = dataset.record_shard(dataset.plan_jobs(config, dataset.default_catalogue())[0], config)
+    monkeypatch.setattr(dataset, "sample_material", sample_material)
+    assert len(records) == 2 and len(drawn) == 2 and drawn[0] != drawn[1]
+    assert [dataset.drawn_material(r) for r in records] == drawn
+
+    moved = dataclasses.replace(records[0], meta={**records[0].meta, "size_m": [0.05, 0.05, 0.05]})
+    with pytest.raises(RobotDemoError, match="recorded by other code or with another catalogue"):
+        dataset.drawn_material(moved)
+    with pytest.raises(RobotDemoError, match="no surface_seed or size_m"):
+        dataset.drawn_material(dataclasses.replace(records[0], meta={}))
+    with pytest.raises(RobotDemoError, match="not in the material catalogue"):
+        dataset.drawn_material(dataclasses.replace(records[0], instance="unobtainium"))
