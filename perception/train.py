@@ -59,7 +59,8 @@ TEST_CORRUPTION_SEED_OFFSET = 12345
 PLACEMENT_FIELDS = ("device", "num_threads")
 # TrainConfig fields added after runs were stored, left out of a run's identity at the value those runs trained
 # with, so that adding a field does not make every stored run stale
-TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0, "mixup_alpha": 0.0}
+TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0, "mixup_alpha": 0.0,
+                                         "aux_parameters_weight": 0.0}
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -166,6 +167,11 @@ class TrainConfig:
         ema_decay: keep an exponential moving average of the weights (Polyak averaging, decay per training step,
             :class:`torch.optim.swa_utils.AveragedModel`); validation, the best-epoch checkpoint and the resume
             state use the average. 0 disables it (the paper's plain weights).
+        aux_parameters_weight: training only, not the paper's: weight of an auxiliary loss, the mean squared
+            error of a linear head on the embedding regressing each training stroke's material parameters
+            (``aux_targets_train`` of :func:`train`, z-scored on the training strokes). The parameters are
+            privileged information, known in simulation and not in real recordings; the head is dropped after
+            training, so the checkpoint and inference are the model's own. 0 disables it.
         init_checkpoint: checkpoint folder to fine-tune from ("" trains from scratch); its norm stats and
             class names are kept.
         feature_config: the front end.
@@ -198,6 +204,7 @@ class TrainConfig:
     ema_decay: float = 0.0
     feature_mask: float = 0.0
     mixup_alpha: float = 0.0
+    aux_parameters_weight: float = 0.0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -244,6 +251,11 @@ class TrainConfig:
             raise ValueError(f"feature_mask must lie in [0, 1), got {self.feature_mask}")
         if not (self.mixup_alpha >= 0.0 and math.isfinite(self.mixup_alpha)):
             raise ValueError(f"mixup_alpha must be a finite number >= 0, got {self.mixup_alpha}")
+        if not (self.aux_parameters_weight >= 0.0 and math.isfinite(self.aux_parameters_weight)):
+            raise ValueError(f"aux_parameters_weight must be a finite number >= 0, got {self.aux_parameters_weight}")
+        if self.aux_parameters_weight > 0 and self.mixup_alpha > 0:
+            raise ValueError("aux_parameters_weight and mixup_alpha cannot both be on: a mixed stroke has no one "
+                             "object's parameters")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
         if not math.isfinite(self.corruption_std):
@@ -590,11 +602,13 @@ def strokes_fingerprint(records: Sequence[StrokeRecord]) -> str:
 
 
 def _save_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, record: dict[str, Any],
-                 ema: AveragedModel | None = None) -> None:
+                 ema: AveragedModel | None = None, aux_head: nn.Module | None = None) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     if ema is not None:
         tensors.update({f"ema.{k}": v.detach().cpu().contiguous() for k, v in ema.state_dict().items()})
+    if aux_head is not None:
+        tensors.update({f"aux_head.{k}": v.detach().cpu().contiguous() for k, v in aux_head.state_dict().items()})
     opt = optimizer.state_dict()
     state_keys: dict[str, list[str]] = {}
     for pid, state in opt["state"].items():
@@ -625,8 +639,8 @@ def _checkpoint_model_config(checkpoint_dir: Path, cls: type) -> dict[str, Any]:
 
 
 def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device,
-                   identity: Mapping[str, Any], model_config_cls: type, ema: AveragedModel | None = None
-                   ) -> dict[str, Any] | None:
+                   identity: Mapping[str, Any], model_config_cls: type, ema: AveragedModel | None = None,
+                   aux_head: nn.Module | None = None) -> dict[str, Any] | None:
     """The resume record of the run folder ``out_dir`` (its state loaded into ``model`` and ``optimizer``), or
     None for a fresh folder.
 
@@ -634,7 +648,7 @@ def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optim
         StaleRunError: the folder holds a run of another config, model, class list or data.
     """
     resume_dir = out_dir / RESUME_DIR
-    record = _load_resume(resume_dir, model, optimizer, device, ema)
+    record = _load_resume(resume_dir, model, optimizer, device, ema, aux_head)
     if record is None:
         return None
     if isinstance(record.get("config"), dict):
@@ -690,7 +704,7 @@ def _set_aside(out_dir: Path) -> Path:
 
 
 def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimizer, device: torch.device,
-                 ema: AveragedModel | None = None) -> dict[str, Any] | None:
+                 ema: AveragedModel | None = None, aux_head: nn.Module | None = None) -> dict[str, Any] | None:
     json_path, tensor_path = folder / "state.json", folder / "state.safetensors"
     if not json_path.is_file():
         return None
@@ -716,6 +730,12 @@ def _load_resume(folder: Path, model: nn.Module, optimizer: torch.optim.Optimize
         except RuntimeError as exc:
             raise StaleRunError(f"{folder}: its weight average does not fit this model ({exc.__class__.__name__}); "
                                 f"use a fresh output folder") from None
+    if aux_head is not None:
+        try:
+            aux_head.load_state_dict({k[len("aux_head."):]: v for k, v in tensors.items() if k.startswith("aux_head.")})
+        except RuntimeError:
+            raise StaleRunError(f"{folder}: holds a run without the auxiliary parameter head this config trains, or "
+                                f"one of another size; use a fresh output folder") from None
     try:
         state = {int(pid): {name: tensors[f"optim.{pid}.{name}"] for name in names}
                  for pid, names in record["optimizer_state_keys"].items()}
@@ -740,13 +760,42 @@ def _accuracy(pred: np.ndarray, labels: np.ndarray) -> float:
     return float(np.mean(pred == labels)) if len(labels) else float("nan")
 
 
+def _aux_parameter_head(config: TrainConfig, model_config: Any, targets: np.ndarray | None, n_train: int
+                        ) -> tuple[nn.Linear | None, torch.Tensor | None]:
+    """The auxiliary head of ``config.aux_parameters_weight`` (a linear map from the embedding to the P
+    parameters, drawn from torch's seeded generator right after the model) and its z-scored targets, or
+    (None, None) when it is off.
+
+    Raises:
+        TrainError: it is on and ``targets`` is missing, not one finite row per training stroke, or the model
+            has no embedding size.
+    """
+    if config.aux_parameters_weight == 0.0:
+        return None, None
+    if targets is None:
+        raise TrainError("aux_parameters_weight > 0 needs each training stroke's material parameters "
+                         "(aux_targets_train)")
+    targets = np.asarray(targets, dtype=np.float64)
+    if targets.ndim != 2 or targets.shape[0] != n_train or targets.shape[1] == 0:
+        raise TrainError(f"aux_targets_train must hold one row of material parameters per training stroke "
+                         f"({n_train}), got shape {targets.shape}")
+    if not np.all(np.isfinite(targets)):
+        raise TrainError("aux_targets_train holds NaN or infinite values")
+    emb_dim = getattr(model_config, "emb_dim", None)
+    if not isinstance(emb_dim, int):
+        raise TrainError(f"model {config.model!r} has no embedding size (emb_dim) for the auxiliary head")
+    std = targets.std(axis=0)
+    z = (targets - targets.mean(axis=0)) / np.where(std > 0, std, 1.0)
+    return nn.Linear(emb_dim, targets.shape[1]), torch.as_tensor(z, dtype=torch.float32)
+
+
 def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRecord], config: TrainConfig,
           out_dir: str | os.PathLike, progress: bool = True, *, class_names: Sequence[str] | None = None,
           features_train: Sequence[StrokeFeatures] | None = None,
           features_val: Sequence[StrokeFeatures] | None = None,
           provenance: Mapping[str, Any] | None = None,
           on_epoch_end: Callable[[Mapping[str, float]], None] | None = None,
-          replace_stale: bool = False) -> TrainResult:
+          replace_stale: bool = False, aux_targets_train: np.ndarray | None = None) -> TrainResult:
     """Train ``config.model`` on ``records_train``, choosing the best epoch on ``records_val``.
 
     Args:
@@ -765,12 +814,14 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         replace_stale: a folder holding a run of another config, model or data is renamed to
             ``<name>.stale-<n>`` (nothing is deleted) and the run trained afresh, instead of raising
             :class:`StaleRunError` (the evaluation's run cache, after a setting or a model default changed).
+        aux_targets_train: (len(records_train), P) material parameters of each training stroke's object, for
+            ``config.aux_parameters_weight`` > 0 (read only then).
 
     Returns:
         The :class:`TrainResult`.
 
     Raises:
-        TrainError: unknown validation labels, CUDA missing.
+        TrainError: unknown validation labels, CUDA missing, auxiliary targets missing or malformed.
         StaleRunError: (a TrainError) resume state from another config, model or other strokes, unless
             ``replace_stale``.
     """
@@ -811,9 +862,15 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     model_config, model = build_model(config.model, in_dims, len(names), **model_overrides(config))
     if init is not None:
         model.load_state_dict(init.model.state_dict())
+    aux_head, aux_targets = _aux_parameter_head(config, model_config, aux_targets_train, len(records_train))
     model.to(device)
     opt_cls = torch.optim.AdamW if config.optimizer == "adamw" else torch.optim.Adam
-    optimizer = opt_cls(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    trained = list(model.parameters())
+    if aux_head is not None:
+        aux_head.to(device)
+        aux_targets = aux_targets.to(device)
+        trained += list(aux_head.parameters())
+    optimizer = opt_cls(trained, lr=config.lr, weight_decay=config.weight_decay)
     ema = (AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(config.ema_decay), use_buffers=True)
            if config.ema_decay > 0 else None)
     evaluated = model if ema is None else ema.module  # what validation scores and the checkpoint keeps
@@ -828,10 +885,12 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
                 "model_config": _model_config_json(type(model_config), config_to_dict(model_config))}
     if config.init_checkpoint:  # the weights fine-tuned from, not only their folder's name
         identity["init_sha256"] = sha256_file(Path(config.init_checkpoint) / WEIGHTS_FILE)
+    if aux_targets is not None:  # the targets regressed, not only their weight
+        identity["aux_targets_sha256"] = hashlib.sha256(aux_targets.cpu().numpy().tobytes()).hexdigest()
 
     resume_dir = out_dir / RESUME_DIR
     try:
-        record = _resume_record(out_dir, model, optimizer, device, identity, type(model_config), ema)
+        record = _resume_record(out_dir, model, optimizer, device, identity, type(model_config), ema, aux_head)
     except StaleRunError as exc:
         if not replace_stale:
             raise
@@ -840,7 +899,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
                    file=sys.stderr)
         return train(records_train, records_val, config, out_dir, progress, class_names=class_names,
                      features_train=features_train, features_val=features_val, provenance=provenance,
-                     on_epoch_end=on_epoch_end)
+                     on_epoch_end=on_epoch_end, aux_targets_train=aux_targets_train)
     start_epoch = 0 if record is None else int(record["epoch"])
     history: list[dict[str, float]] = [] if record is None else list(record["history"])
     best_epoch = 0 if record is None else int(record["best_epoch"])
@@ -858,7 +917,7 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         batches = (length_grouped_batches(order, lengths, config.batch_size, gen) if config.group_by_length
                    else [order[b * config.batch_size:(b + 1) * config.batch_size] for b in range(steps_per_epoch)])
         model.train()
-        sums = {"loss": 0.0, "ce": 0.0, "contrastive": 0.0, "correct": 0.0}
+        sums = {"loss": 0.0, "ce": 0.0, "contrastive": 0.0, "correct": 0.0, "aux": 0.0}
         for b, idx in enumerate(batches):
             if idx.size == 0:
                 continue
@@ -880,6 +939,10 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
                                label_smoothing=config.label_smoothing, partner_labels=mixed.partner_labels.to(device),
                                share=mixed.share)
             loss = terms.total
+            if aux_head is not None:
+                aux = nn.functional.mse_loss(aux_head(out.embedding), aux_targets[torch.as_tensor(idx, device=device)])
+                loss = loss + config.aux_parameters_weight * aux
+                sums["aux"] += float(aux.detach()) * len(idx)
             if unimodal is not None:
                 loss = loss + model_config.unimodal_lambda * unimodal_cross_entropy(unimodal, batch.labels,
                                                                                     batch.present_matrix())
@@ -902,6 +965,8 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         row = {"epoch": epoch + 1, "lr": lr, "train_loss": sums["loss"] / n, "train_ce": sums["ce"] / n,
                "train_contrastive": sums["contrastive"] / n, "train_accuracy": sums["correct"] / n,
                "val_accuracy": val_acc, "seconds": time.perf_counter() - t0}
+        if aux_head is not None:
+            row["train_aux_mse"] = sums["aux"] / n
         history.append(row)
         improved = (val_acc > best_val) if norm_val else True
         if improved:
@@ -909,7 +974,8 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             save_checkpoint(out_dir / CHECKPOINT_DIR, config.model, evaluated, model_config, fc, stats, names,
                             meta={**meta, "best_epoch": best_epoch, "val_accuracy": val_acc})
         _save_resume(resume_dir, model, optimizer, {**identity, "epoch": epoch + 1, "history": history,
-                                                    "best_epoch": best_epoch, "best_val_accuracy": best_val}, ema)
+                                                    "best_epoch": best_epoch, "best_val_accuracy": best_val}, ema,
+                     aux_head)
         bar.set_postfix(loss=f"{row['train_loss']:.3f}", val=f"{val_acc:.3f}")
         if on_epoch_end is not None:
             on_epoch_end(row)
@@ -964,10 +1030,12 @@ def _subsample(records: Sequence[StrokeRecord], train_idx: np.ndarray, config: T
 
 
 def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, config: TrainConfig, fold: int = 0,
-                  n_folds: int = 5, command: str = "", progress: bool = True) -> dict[str, Any]:
+                  n_folds: int = 5, command: str = "", progress: bool = True,
+                  aux_targets_of: Callable[[Sequence[StrokeRecord]], np.ndarray] | None = None) -> dict[str, Any]:
     """``robotdemo train``: load a data set, split it for ``config.task``, train, test the best epoch.
 
-    The split is :func:`task_split`'s. Writes ``out_dir/metrics.json``.
+    The split is :func:`task_split`'s. Writes ``out_dir/metrics.json``. With ``config.aux_parameters_weight``
+    > 0, ``aux_targets_of`` gives the material parameters of the training strokes (one row per stroke).
 
     Returns:
         {"test_accuracy", "test_g_mean", "n_train", "n_val", "n_test", "best_epoch", "checkpoint_dir", ...}.
@@ -980,9 +1048,15 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
     train_idx, val_idx, test_idx = task_split(records, config, fold, n_folds)
     pick = lambda idx: [records[i] for i in idx]  # noqa: E731
     names = tuple(sorted(set(labels_of(records, config.task))))
+    aux_targets = None
+    if config.aux_parameters_weight > 0:
+        if aux_targets_of is None:
+            raise TrainError("aux_parameters_weight > 0 needs a source of the strokes' material parameters")
+        aux_targets = aux_targets_of(pick(train_idx))
     result = train(pick(train_idx), pick(val_idx), config, out_dir, progress, class_names=names,
                    provenance={"command": command, "data_dir": str(data_dir),
-                               "data_manifest_sha256": data.manifest_sha256, "fold": fold})
+                               "data_manifest_sha256": data.manifest_sha256, "fold": fold},
+                   aux_targets_train=aux_targets)
     ckpt = load_checkpoint(result.checkpoint_dir, device=resolve_device(config.device))
     # Temperature scaling on the validation strokes: the robot's confidence threshold then means what it says.
     corruption = {"corruption_ratio": config.corruption_ratio, "corruption_std": config.corruption_std,

@@ -97,15 +97,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
                          time_crop=args.time_crop, ema_decay=args.ema_decay, feature_mask=args.feature_mask,
-                         mixup_alpha=args.mixup,
+                         mixup_alpha=args.mixup, aux_parameters_weight=args.aux_parameters,
                          corruption_ratio=args.corruption_ratio,
                          corruption_std=args.corruption_std,
                          model_overrides=overrides, feature_config=_feature_config(args.modalities))
     _output_folder(args.out, "--out")
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
-                            progress=not args.quiet)
+                            progress=not args.quiet,
+                            aux_targets_of=_drawn_log_parameters if config.aux_parameters_weight > 0 else None)
     print(json.dumps(metrics, indent=2, default=str))
     return 0
+
+
+def _drawn_log_parameters(records):
+    """Each stroke's object's log material parameters, drawn again from its meta (``--aux-parameters``)."""
+    from perception.materials import default_catalogue
+    from perception.parameter_probe import log_parameters
+    from robotdemo.dataset import drawn_material
+
+    catalogue = default_catalogue()
+    return log_parameters([drawn_material(r, catalogue) for r in records])
 
 
 def _feature_config(modalities: str | None) -> FeatureConfig:
@@ -357,6 +368,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--time-crop", type=float, default=1.0, metavar="SHARE",
                        help="training: cut each stroke to a random window of at least this share of it "
                             "(default 1: off)")
+    train.add_argument("--aux-parameters", type=float, default=0.0, metavar="WEIGHT",
+                       help="training, not the paper's: also regress each training stroke's material parameters "
+                            "(drawn again from its meta; privileged information of the simulator) from the "
+                            "embedding, at this loss weight (default 0: off)")
     train.add_argument("--ema-decay", type=float, default=0.0, metavar="DECAY",
                        help="validate and keep an exponential moving average of the weights with this decay per "
                             "step (default 0: off, the plain weights)")
