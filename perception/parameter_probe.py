@@ -177,7 +177,8 @@ def read_back_parameters(features: np.ndarray, params: np.ndarray, groups: np.nd
 
 
 def run_parameter_probe(records: Sequence[StrokeRecord], samples: Sequence[MaterialSample],
-                        config: ParameterProbeConfig = ParameterProbeConfig(), progress: bool = False) -> dict[str, Any]:
+                        config: ParameterProbeConfig = ParameterProbeConfig(), progress: bool = False
+                        ) -> dict[str, Any]:
     """The oracle and the recovery (module docstring) on ``records``, ``samples[i]`` being the physical
     parameters of the object that ``records[i]`` touched.
 
@@ -202,11 +203,11 @@ def run_parameter_probe(records: Sequence[StrokeRecord], samples: Sequence[Mater
     features = stroke_matrices(records, progress=progress)["both"]
     groups = object_groups(records)
     splits = splits_of(config.splits)
+    labels = {task: np.array(labels_of(records, task)) for task in {task for task, _, _ in splits}}
     runs = []
-    bar = tqdm(splits, desc="oracle", unit="split", disable=not progress)
-    for task, seed, fold in bar:
+    for task, seed, fold in tqdm(splits, desc="oracle", unit="split", disable=not progress):
         parts = task_split(records, TrainConfig(task=task, seed=seed), fold)
-        y = np.array(labels_of(records, task))
+        y = labels[task]
         read = read_back_parameters(features, params, groups, parts[0], config.recovery_folds)
         for name, x in (("parameters", params), ("read_back", read)):
             runs += [score_split((task, seed, fold), parts, y, name, x, c, config.splits.read_test)

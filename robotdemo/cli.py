@@ -111,12 +111,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 def _drawn_log_parameters(records):
     """Each stroke's object's log material parameters, drawn again from its meta (``--aux-parameters``)."""
-    from perception.materials import default_catalogue
     from perception.parameter_probe import log_parameters
-    from robotdemo.dataset import drawn_material
+    from robotdemo.dataset import drawn_materials
 
-    catalogue = default_catalogue()
-    return log_parameters([drawn_material(r, catalogue) for r in records])
+    return log_parameters(drawn_materials(records))
 
 
 def _feature_config(modalities: str | None) -> FeatureConfig:
@@ -448,8 +446,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "stream's own accuracy); statistics, parameters: the data set whose training splits to fit on; "
                        "classifier: the data set the checkpoint was trained on (its held-out part is used)")
     bench.add_argument("--read-test", action="store_true",
-                       help="statistics, parameters: also score the test parts (by default the validation parts only, which "
-                            "the networks' epochs were chosen on)")
+                       help="statistics, parameters: also score the test parts (by default the validation parts "
+                            "only, which the networks' epochs were chosen on)")
     bench.add_argument("--seeds", type=_positive_int, default=10, help="demo: number of seeds (fire environment)")
     bench.add_argument("--objects", type=_positive_int, default=6, help="demo: objects per seed")
     bench.add_argument("--oracle", action="store_true",

@@ -27,7 +27,7 @@ import time
 from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -161,6 +161,13 @@ def drawn_material(record: StrokeRecord, catalogue: MaterialCatalogue | None = N
                              f"again from its seed is {spec.size_m} m, the recorded one {list(size)} m; the data "
                              "were recorded by other code or with another catalogue")
     return spec.material
+
+
+def drawn_materials(records: Sequence[StrokeRecord], catalogue: MaterialCatalogue | None = None,
+                    progress: bool = False) -> list[MaterialSample]:
+    """:func:`drawn_material` of every stroke, with one catalogue (a tqdm bar with ``progress``)."""
+    catalogue = catalogue or default_catalogue()
+    return [drawn_material(r, catalogue) for r in tqdm(records, desc="materials", unit="stroke", disable=not progress)]
 
 
 def record_shard(job: ShardJob, config: DatasetConfig, catalogue: MaterialCatalogue | None = None,

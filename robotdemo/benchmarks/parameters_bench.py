@@ -10,13 +10,10 @@ from __future__ import annotations
 
 import os
 
-from tqdm import tqdm
-
 from perception.dataset import load_dataset
-from perception.materials import default_catalogue
 from perception.parameter_probe import ParameterProbeConfig, run_parameter_probe
 from perception.pooled_statistics import PooledStatisticsConfig
-from robotdemo.dataset import drawn_material
+from robotdemo.dataset import drawn_materials
 
 
 def run_parameters_benchmark(data_dir: str | os.PathLike, read_test: bool = False, progress: bool = True) -> dict:
@@ -26,9 +23,7 @@ def run_parameters_benchmark(data_dir: str | os.PathLike, read_test: bool = Fals
         RobotDemoError: a stroke's object cannot be drawn again (:func:`robotdemo.dataset.drawn_material`).
     """
     data = load_dataset(data_dir)
-    catalogue = default_catalogue()
-    samples = [drawn_material(r, catalogue)
-               for r in tqdm(data.records, desc="materials", unit="stroke", disable=not progress)]
+    samples = drawn_materials(data.records, progress=progress)
     config = ParameterProbeConfig(splits=PooledStatisticsConfig(read_test=read_test))
     return {"data": os.fspath(data_dir), "data_manifest_sha256": data.manifest_sha256,
             **run_parameter_probe(data.records, samples, config, progress=progress)}
