@@ -10,6 +10,7 @@ sound      Hann STFT -> mel filterbank -> log energy -> DCT (MFCC-like)      24
 normal     sliding window over the 16 taxels: per-taxel mean and std         32
 friction   sliding window over the 32 shear channels: mean and std           64
 accel      Hann STFT, power summed over the 3 axes -> linear bands -> log    16
+           (or the pad-normal axis and the in-plane power side by side)      (32)
 =========  ===============================================================  ======================
 
 Windows and hops are given in seconds, so a stream recorded at another rate than the nominal one
@@ -24,6 +25,7 @@ Typical use::
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 from dataclasses import dataclass, field
@@ -56,6 +58,10 @@ class SpectralConfig:
         mel: mel-spaced bands if True, linearly spaced otherwise.
         n_coeffs: DCT coefficients kept from the log band energies (MFCC-like); 0 keeps the log band
             energies themselves.
+        channel_groups: which of the stream's channels are summed into one spectrum: each group (channel
+            indices) gives its own log band energies, side by side in the order given. Empty (the default):
+            the power of all channels is summed into one spectrum. :data:`ACCEL_NORMAL_TANGENTIAL` keeps the
+            accelerometer's pad-normal vibration apart from its in-plane one.
     """
 
     window_s: float
@@ -65,10 +71,28 @@ class SpectralConfig:
     fmax_hz: float
     mel: bool
     n_coeffs: int = 0
+    channel_groups: tuple[tuple[int, ...], ...] = ()
+
+    def __post_init__(self) -> None:
+        groups = self.channel_groups
+        if any(not group or any(not isinstance(c, int) or isinstance(c, bool) or c < 0 for c in group)
+               or len(set(group)) != len(group) for group in groups):
+            raise ValueError(f"channel_groups must be non-empty groups of distinct channel indices >= 0, got {groups}")
 
     @property
     def n_channels(self) -> int:
-        return self.n_coeffs if self.n_coeffs > 0 else self.n_bands
+        per_spectrum = self.n_coeffs if self.n_coeffs > 0 else self.n_bands
+        return per_spectrum * max(1, len(self.channel_groups))
+
+
+ACCEL_NORMAL_TANGENTIAL: tuple[tuple[int, ...], ...] = ((2,), (0, 1))
+"""Accelerometer ``channel_groups`` (pad frame: x, y in the pad's plane, z along its normal): the normal
+vibration's spectrum, then the in-plane power (x + y, which does not depend on the slide's direction). A surface's
+heights push the pad along its normal while friction and stick-slip shake it along the slide, so summing the
+three axes, as the default does, mixes the two (``robotdemo train --accel-axes normal-tangential``)."""
+
+ACCEL_AXES: dict[str, tuple[tuple[int, ...], ...]] = {"sum": (), "normal-tangential": ACCEL_NORMAL_TANGENTIAL}
+"""Named accelerometer channel groupings (``robotdemo train --accel-axes``)."""
 
 
 @dataclass(frozen=True)
@@ -188,7 +212,8 @@ def _frame_params(window_s: float, hop_s: float, rate_hz: float) -> tuple[int, i
 
 
 def spectral_features(stream: Stream, config: SpectralConfig) -> np.ndarray:
-    """Log filterbank energies (optionally DCT'd) of one stream, power summed over its channels.
+    """Log filterbank energies (optionally DCT'd) of one stream, power summed over its channels (or over each of
+    ``config.channel_groups``, the groups' features side by side).
 
     Args:
         stream: (T, C) samples at ``stream.rate_hz``.
@@ -196,7 +221,19 @@ def spectral_features(stream: Stream, config: SpectralConfig) -> np.ndarray:
 
     Returns:
         (T_frames, config.n_channels) float32, T_frames >= 1.
+
+    Raises:
+        ValueError: a channel group names a channel the stream does not have.
     """
+    if config.channel_groups:
+        n_channels = stream.data.shape[1]
+        needed = max(max(group) for group in config.channel_groups) + 1
+        if needed > n_channels:
+            raise ValueError(f"the spectral front end's channel_groups {[list(g) for g in config.channel_groups]} "
+                             f"need {needed} channels; the stream has {n_channels}")
+        whole = dataclasses.replace(config, channel_groups=())
+        return np.concatenate([spectral_features(Stream(stream.data[:, list(group)], stream.rate_hz, stream.t0_s), whole)
+                               for group in config.channel_groups], axis=1)
     rate = stream.rate_hz
     n_win, hop = _frame_params(config.window_s, config.hop_s, rate)
     x = stream.data.astype(np.float64).T  # (C, T)

@@ -61,6 +61,8 @@ PLACEMENT_FIELDS = ("device", "num_threads")
 # with, so that adding a field does not make every stored run stale
 TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0, "mixup_alpha": 0.0,
                                          "aux_parameters_weight": 0.0}
+# The same for fields added to a front end's config (each of feature_config's spectral front ends)
+SPECTRAL_IDENTITY_OMITS: dict[str, Any] = {"channel_groups": []}
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -672,10 +674,17 @@ def _resume_record(out_dir: Path, model: nn.Module, optimizer: torch.optim.Optim
 
 
 def _trained_config(config: TrainConfig) -> dict[str, Any]:
-    """``config`` as plain JSON without its :data:`PLACEMENT_FIELDS` (and the :data:`TRAIN_IDENTITY_OMITS` at
-    their given values): what a run folder's identity holds."""
-    return {k: v for k, v in config.to_dict().items()
-            if k not in PLACEMENT_FIELDS and not (k in TRAIN_IDENTITY_OMITS and v == TRAIN_IDENTITY_OMITS[k])}
+    """``config`` as plain JSON without its :data:`PLACEMENT_FIELDS` (and the :data:`TRAIN_IDENTITY_OMITS` and,
+    in its spectral front ends, the :data:`SPECTRAL_IDENTITY_OMITS` at their given values): what a run folder's
+    identity holds."""
+    trained = {k: v for k, v in config.to_dict().items()
+               if k not in PLACEMENT_FIELDS and not (k in TRAIN_IDENTITY_OMITS and v == TRAIN_IDENTITY_OMITS[k])}
+    for front_end in ("sound", "accel"):
+        spectral = trained["feature_config"][front_end]
+        for name, value in SPECTRAL_IDENTITY_OMITS.items():
+            if spectral.get(name) == value:
+                del spectral[name]
+    return trained
 
 
 def run_identity(config: TrainConfig, n_classes: int) -> dict[str, Any]:

@@ -100,7 +100,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          mixup_alpha=args.mixup, aux_parameters_weight=args.aux_parameters,
                          corruption_ratio=args.corruption_ratio,
                          corruption_std=args.corruption_std,
-                         model_overrides=overrides, feature_config=_feature_config(args.modalities))
+                         model_overrides=overrides,
+                         feature_config=_feature_config(args.modalities, args.accel_axes))
     _output_folder(args.out, "--out")
     metrics = train_command(args.data, args.out, config, fold=args.fold, command=" ".join(sys.argv),
                             progress=not args.quiet,
@@ -117,13 +118,17 @@ def _drawn_log_parameters(records):
     return log_parameters(drawn_materials(records))
 
 
-def _feature_config(modalities: str | None) -> FeatureConfig:
-    """The default front end, restricted to ``--modalities`` when given."""
-    from perception.features import FeatureConfig
+def _feature_config(modalities: str | None, accel_axes: str = "sum") -> FeatureConfig:
+    """The default front end, restricted to ``--modalities`` when given, its accelerometer spectra grouped by
+    ``--accel-axes``."""
+    import dataclasses
 
-    if modalities is None:
-        return FeatureConfig()
-    return FeatureConfig(modalities=tuple(m.strip() for m in modalities.split(",") if m.strip()))
+    from perception.features import ACCEL_AXES, FeatureConfig
+
+    config = FeatureConfig()
+    if modalities is not None:
+        config = FeatureConfig(modalities=tuple(m.strip() for m in modalities.split(",") if m.strip()))
+    return dataclasses.replace(config, accel=dataclasses.replace(config.accel, channel_groups=ACCEL_AXES[accel_axes]))
 
 
 def _model_option(text: str) -> tuple[str, object]:
@@ -388,6 +393,10 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--modalities", default=None, metavar="S,N,...",
                        help="train on these sensors only, comma-separated among sound, normal, friction, accel; "
                             "the checkpoint then ignores the others (default: all four)")
+    train.add_argument("--accel-axes", choices=("sum", "normal-tangential"), default="sum",
+                       help="not the paper's: 'normal-tangential' gives the accelerometer's pad-normal (z) and in-plane "
+                            "(x + y) vibration spectra side by side instead of one spectrum of the power summed "
+                            "over the three axes (default sum); needs a 3-axis accelerometer")
     train.add_argument("--model-option", action="append", default=[], metavar="KEY=VALUE",
                        help="a field of the model's config, e.g. d_model=32 (repeatable)")
     train.add_argument("--device", default="auto", help="auto (GPU when present), cpu or cuda")

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 import torch
 
-from perception.features import (FeatureConfig, NormStats, SpectralConfig, collate, feature_dims, featurize,
-                                  fit_norm_stats, normalize, spectral_features, taxel_features)
+from perception.features import (ACCEL_NORMAL_TANGENTIAL, FeatureConfig, NormStats, SpectralConfig, collate,
+                                  feature_dims, featurize, fit_norm_stats, normalize, spectral_features,
+                                  taxel_features)
 from perception.streams import MODALITIES, NOMINAL_RATE_HZ, NUM_CHANNELS, Stream, StrokeRecord
 
 torch.set_num_threads(2)
@@ -113,6 +114,53 @@ def test_spectral_bands_follow_the_dominant_frequency():
         x = np.sin(2 * np.pi * f * t)[:, None].astype(np.float32)
         peaks.append(int(np.argmax(spectral_features(Stream(x, 44_100.0), cfg).mean(axis=0))))
     assert peaks == sorted(peaks) and len(set(peaks)) == 3
+
+
+def _normal_tangential_accel() -> SpectralConfig:
+    return dataclasses.replace(FeatureConfig().accel, channel_groups=ACCEL_NORMAL_TANGENTIAL)
+
+
+def test_accel_normal_tangential_keeps_each_direction_in_its_own_half():
+    cfg = _normal_tangential_accel()
+    assert cfg.n_channels == 2 * FeatureConfig().accel.n_channels == 32
+    t = np.arange(1000) / 500.0
+    rng = np.random.default_rng(3)
+    floor = 1e-4 * rng.normal(size=(1000, 3))
+    tone = np.sin(2 * np.pi * 60.0 * t)
+    along_normal = spectral_features(Stream((floor + tone[:, None] * [0, 0, 1]).astype(np.float32), 500.0), cfg)
+    along_x = spectral_features(Stream((floor + tone[:, None] * [1, 0, 0]).astype(np.float32), 500.0), cfg)
+    assert along_normal.shape[1] == 32
+    # the 60 Hz vibration raises the normal half's peak band far above the in-plane half's, and the other way
+    assert along_normal[:, :16].max() - along_normal[:, 16:].max() > 10.0
+    assert along_x[:, 16:].max() - along_x[:, :16].max() > 10.0
+    # each half is the plain front end of its own channels; the default sums all three
+    stream = Stream(rng.normal(size=(1000, 3)).astype(np.float32), 500.0, t0_s=0.01)
+    split = spectral_features(stream, cfg)
+    plain = FeatureConfig().accel
+    assert np.array_equal(split[:, :16], spectral_features(Stream(stream.data[:, 2:], 500.0, 0.01), plain))
+    assert np.array_equal(split[:, 16:], spectral_features(Stream(stream.data[:, :2], 500.0, 0.01), plain))
+    assert spectral_features(stream, plain).shape[1] == 16
+
+
+def test_accel_normal_tangential_does_not_depend_on_the_slide_direction():
+    # rotating the vibration within the pad's plane (another slide direction) leaves the features as they were
+    cfg = _normal_tangential_accel()
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(800, 3))
+    angle = 0.7
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    a = spectral_features(Stream(x.astype(np.float32), 500.0), cfg)
+    b = spectral_features(Stream((x @ rotation.T).astype(np.float32), 500.0), cfg)
+    assert np.allclose(a, b, atol=1e-4)
+
+
+def test_channel_groups_are_validated_and_need_the_stream_s_channels():
+    for bad in (((),), ((0, 0),), ((-1,),), ((0,), (1.5,))):
+        with pytest.raises(ValueError, match="channel_groups must be non-empty groups"):
+            dataclasses.replace(FeatureConfig().accel, channel_groups=bad)
+    one_axis = Stream(np.zeros((500, 1), np.float32), 500.0)  # e.g. a DFT321-combined accelerometer (LMT)
+    with pytest.raises(ValueError, match=r"need 3 channels; the stream has 1"):
+        spectral_features(one_axis, _normal_tangential_accel())
 
 
 def test_taxel_features_mean_and_std():

@@ -660,6 +660,37 @@ def test_run_identity_leaves_out_a_field_added_since_at_what_stored_runs_did():
     assert {k: v for k, v in aux["model_config"].items() if k != "unimodal_lambda"} == plain["model_config"]
 
 
+def test_train_cli_accel_axes_gives_a_checkpoint_with_the_split_front_end(tmp_path, capsys):
+    from perception.checkpoint import config_from_dict
+    from perception.dataset import load_dataset
+    from perception.features import ACCEL_NORMAL_TANGENTIAL
+    from robotdemo.cli import main
+
+    recs = make_material_strokes(8, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.2)
+    write_dataset(tmp_path / "ds", recs, env="clean", seed=8)
+    code = main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--model", "mtcnn",
+                 "--epochs", "1", "--accel-axes", "normal-tangential", "--model-option", "channels=8", "--quiet"])
+    capsys.readouterr()
+    assert code == 0
+    ckpt = load_checkpoint(json.loads((tmp_path / "run" / "metrics.json").read_text())["checkpoint_dir"])
+    assert ckpt.feature_config.accel.channel_groups == ACCEL_NORMAL_TANGENTIAL
+    assert feature_dims(ckpt.feature_config)["accel"] == 32
+    feats = featurize_records(load_dataset(tmp_path / "ds").records[:4], ckpt.feature_config)
+    assert predict(ckpt.model, feats, feature_dims(ckpt.feature_config), stats=ckpt.norm_stats).pred.shape == (4,)
+    # a front end saved before the field existed sums the three axes, as it did then
+    old = dataclasses.asdict(FeatureConfig())
+    del old["accel"]["channel_groups"]
+    assert config_from_dict(FeatureConfig, old) == FeatureConfig()
+    # the run's identity names the split front end; the default's leaves the field out, as stored runs have it
+    split = run_identity(TrainConfig(feature_config=ckpt.feature_config), 3)["config"]["feature_config"]
+    assert split["accel"]["channel_groups"] == [[2], [0, 1]]
+    plain = run_identity(TrainConfig(), 3)["config"]["feature_config"]
+    assert "channel_groups" not in plain["accel"] and "channel_groups" not in plain["sound"]
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "bad"), "--accel-axes", "xyz"])
+    assert exit_.value.code == 2 and "invalid choice: 'xyz'" in capsys.readouterr().err
+
+
 def _object_parameters(records, seed=0):
     """Toy material parameters: the category sets the first column, each object draws the other two."""
     rng = np.random.default_rng(seed)
