@@ -57,8 +57,9 @@ class ParameterProbeConfig:
     """What to run.
 
     Attributes:
-        splits: the oracle's splits and classifiers (seeds, folds, classifiers, ``read_test``), as for
-            ``robotdemo bench statistics``; its ``feature_sets`` is not read.
+        splits: the oracle's splits and classifiers (seeds, folds, classifiers, ``read_test``) and the front end
+            whose frames are pooled (``features``), as for ``robotdemo bench statistics``; its ``feature_sets`` is
+            not read.
         recovery_folds: folds of the recovery's ``GroupKFold`` over objects.
         regressors: among :data:`REGRESSORS`.
     """
@@ -200,7 +201,7 @@ def run_parameter_probe(records: Sequence[StrokeRecord], samples: Sequence[Mater
         if sample.instance != record.instance:
             raise ValueError(f"stroke {i} is of {record.instance!r} but its material sample of {sample.instance!r}")
     params = log_parameters(samples)
-    features = stroke_matrices(records, progress=progress)["both"]
+    features = stroke_matrices(records, config.splits.features, progress=progress)["both"]
     groups = object_groups(records)
     splits = splits_of(config.splits)
     labels = {task: np.array(labels_of(records, task)) for task in {task for task, _, _ in splits}}

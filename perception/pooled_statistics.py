@@ -49,6 +49,7 @@ class PooledStatisticsConfig:
         feature_sets: among :data:`FEATURE_SETS`.
         classifiers: among :data:`CLASSIFIERS`.
         read_test: also score each split's test part (leave off while choosing anything).
+        features: the networks' front end whose frames the ``"pooled"`` set pools (the default: the evaluation's).
     """
 
     ssmc_seeds: tuple[int, ...] = (0, 1, 2)
@@ -57,6 +58,7 @@ class PooledStatisticsConfig:
     feature_sets: tuple[str, ...] = FEATURE_SETS
     classifiers: tuple[str, ...] = CLASSIFIERS
     read_test: bool = False
+    features: FeatureConfig = FeatureConfig()
 
     def __post_init__(self) -> None:
         unknown = [f for f in self.feature_sets if f not in FEATURE_SETS]
@@ -130,7 +132,7 @@ def run_pooled_statistics(records: Sequence[StrokeRecord], config: PooledStatist
         [, "n_test", "test_accuracy_pct"]}, ...], "means": {task: {features: {classifier: {"val_accuracy_pct"
         [, "test_accuracy_pct"]}}}}, "read_test": bool}. Accuracies in percent.
     """
-    matrices = stroke_matrices(records, progress=progress)
+    matrices = stroke_matrices(records, config.features, progress=progress)
     return score_on_splits(records, {name: matrices[name] for name in config.feature_sets}, config, progress)
 
 

@@ -232,15 +232,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise RobotDemoError("bench statistics needs --data DIR (a data set folder)")
         from perception.dataset import load_dataset
         from perception.pooled_statistics import PooledStatisticsConfig, run_pooled_statistics
-        result = {"data": args.data, **run_pooled_statistics(load_dataset(args.data).records,
-                                                             PooledStatisticsConfig(read_test=args.read_test),
-                                                             progress=True)}
+        from perception.checkpoint import config_to_dict
+        features = _feature_config(None, args.accel_axes)
+        result = {"data": args.data, "feature_config": config_to_dict(features),
+                  **run_pooled_statistics(load_dataset(args.data).records,
+                                          PooledStatisticsConfig(read_test=args.read_test, features=features),
+                                          progress=True)}
     elif args.what == "parameters":
         if not args.data:
             raise RobotDemoError("bench parameters needs --data DIR (a data set recorded by robotdemo dataset)")
         _output_file(args.plot, "--plot")
         from robotdemo.benchmarks.parameters_bench import run_parameters_benchmark
-        result = run_parameters_benchmark(args.data, read_test=args.read_test)
+        result = run_parameters_benchmark(args.data, read_test=args.read_test,
+                                          features=_feature_config(None, args.accel_axes))
         if args.plot:
             from perception.parameter_probe import plot_parameter_probe
             result["plot"] = str(plot_parameter_probe(args.plot, result))
@@ -473,6 +477,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="stroke: the physics solver's iterations per step, one run per count (default 100)")
     bench.add_argument("--plot", default=None, metavar="FILE.png",
                        help="parameters: also draw the recovery and the oracle as a PNG")
+    bench.add_argument("--accel-axes", choices=("sum", "normal-tangential"), default="sum",
+                       help="statistics, parameters: the accelerometer front end whose frames are pooled, as train's "
+                            "--accel-axes (default sum)")
     bench.add_argument("--json", action="store_true")
     bench.set_defaults(func=_cmd_bench)
     return parser

@@ -93,3 +93,19 @@ def test_bench_statistics_needs_data_and_writes_json(tmp_path, capsys):
     assert result["data"] == str(tmp_path / "ds") and not result["read_test"]
     assert {r["task"] for r in result["runs"]} == {"ssmc", "usmc", "fine"}
     assert set(result["means"]["ssmc"]) == {"reference", "pooled", "both"}
+    assert result["feature_config"]["accel"]["channel_groups"] == []  # the evaluation's front end, said in the JSON
+    assert main(["bench", "statistics", "--data", str(tmp_path / "ds"), "--accel-axes", "normal-tangential",
+                 "--json"]) == 0
+    split = json.loads(capsys.readouterr().out)
+    assert split["feature_config"]["accel"]["channel_groups"] == [[2], [0, 1]]
+
+
+def test_stroke_matrices_pool_the_front_end_they_are_given():
+    from perception.features import ACCEL_NORMAL_TANGENTIAL, FeatureConfig, feature_dims, featurize
+
+    records = make_material_strokes(5, n_categories=2, n_instances=2, n_objects=1, n_strokes=2, duration_s=0.2)
+    plain = FeatureConfig()
+    split = dataclasses.replace(plain, accel=dataclasses.replace(plain.accel, channel_groups=ACCEL_NORMAL_TANGENTIAL))
+    m_plain, m_split = stroke_matrices(records, plain)["pooled"], stroke_matrices(records, split)["pooled"]
+    assert m_split.shape[1] - m_plain.shape[1] == 3 * 16  # mean, std and max of 16 more accelerometer bands
+    np.testing.assert_array_equal(m_split[1], pooled_frame_statistics(featurize(records[1], split), feature_dims(split)))
