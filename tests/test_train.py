@@ -564,14 +564,22 @@ def test_train_cli_model_option_errors_are_one_line(tmp_path, capsys):
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1
 
 
+def _train_small_mtcnn_by_cli(tmp_path, seed, *options):
+    """``robotdemo train`` of a small MTCNN on toy materials written to ``tmp_path/ds`` (3 categories, 2
+    instances each, seeded), out to ``tmp_path/run``; returns the exit code."""
+    from robotdemo.cli import main
+
+    recs = make_material_strokes(seed, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.2)
+    write_dataset(tmp_path / "ds", recs, env="clean", seed=seed)
+    return main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--model", "mtcnn",
+                 "--model-option", "channels=8", "--quiet", *options])
+
+
 def test_train_cli_corruption_ratio_corrupts_the_test_strokes_too(tmp_path, capsys):
     from perception.dataset import load_dataset
     from robotdemo.cli import main
 
-    recs = make_material_strokes(6, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.2)
-    write_dataset(tmp_path / "ds", recs, env="clean", seed=6)
-    code = main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--model", "mtcnn",
-                 "--epochs", "2", "--corruption-ratio", "1.0", "--model-option", "channels=8", "--quiet"])
+    code = _train_small_mtcnn_by_cli(tmp_path, 6, "--epochs", "2", "--corruption-ratio", "1.0")
     capsys.readouterr()
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert code == 0 and metrics["corruption_ratio"] == 1.0 and metrics["corruption_std"] == 1.0
@@ -666,10 +674,7 @@ def test_train_cli_accel_axes_gives_a_checkpoint_with_the_split_front_end(tmp_pa
     from perception.features import ACCEL_NORMAL_TANGENTIAL
     from robotdemo.cli import main
 
-    recs = make_material_strokes(8, n_categories=3, n_instances=2, n_objects=2, n_strokes=3, duration_s=0.2)
-    write_dataset(tmp_path / "ds", recs, env="clean", seed=8)
-    code = main(["train", "--data", str(tmp_path / "ds"), "--out", str(tmp_path / "run"), "--model", "mtcnn",
-                 "--epochs", "1", "--accel-axes", "normal-tangential", "--model-option", "channels=8", "--quiet"])
+    code = _train_small_mtcnn_by_cli(tmp_path, 8, "--epochs", "1", "--accel-axes", "normal-tangential")
     capsys.readouterr()
     assert code == 0
     ckpt = load_checkpoint(json.loads((tmp_path / "run" / "metrics.json").read_text())["checkpoint_dir"])
