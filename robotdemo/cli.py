@@ -118,6 +118,11 @@ def _drawn_log_parameters(records):
     return log_parameters(drawn_materials(records))
 
 
+ACCEL_AXES_CHOICES = ("sum", "normal-tangential")
+"""``--accel-axes`` values: the keys of :data:`perception.features.ACCEL_AXES` (named here so that building the
+parser does not import the front end and torch)."""
+
+
 def _feature_config(modalities: str | None, accel_axes: str = "sum") -> FeatureConfig:
     """The default front end, restricted to ``--modalities`` when given, its accelerometer spectra grouped by
     ``--accel-axes``."""
@@ -397,7 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--modalities", default=None, metavar="S,N,...",
                        help="train on these sensors only, comma-separated among sound, normal, friction, accel; "
                             "the checkpoint then ignores the others (default: all four)")
-    train.add_argument("--accel-axes", choices=("sum", "normal-tangential"), default="sum",
+    train.add_argument("--accel-axes", choices=ACCEL_AXES_CHOICES, default="sum",
                        help="not the paper's: 'normal-tangential' gives the accelerometer's pad-normal (z) and in-plane "
                             "(x + y) vibration spectra side by side instead of one spectrum of the power summed "
                             "over the three axes (default sum); needs a 3-axis accelerometer")
@@ -477,7 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="stroke: the physics solver's iterations per step, one run per count (default 100)")
     bench.add_argument("--plot", default=None, metavar="FILE.png",
                        help="parameters: also draw the recovery and the oracle as a PNG")
-    bench.add_argument("--accel-axes", choices=("sum", "normal-tangential"), default="sum",
+    bench.add_argument("--accel-axes", choices=ACCEL_AXES_CHOICES, default="sum",
                        help="statistics, parameters: the accelerometer front end whose frames are pooled, as train's "
                             "--accel-axes (default sum)")
     bench.add_argument("--json", action="store_true")
