@@ -23,6 +23,7 @@ strokes do not store them, and drawing them again needs the recorder, ``robotdem
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -187,7 +188,8 @@ def run_parameter_probe(records: Sequence[StrokeRecord], samples: Sequence[Mater
         {"oracle": score_on_splits's result with two feature sets, ``"parameters"`` (the exact logs) and
         ``"read_back"`` (:func:`read_back_parameters` by ridge), "recovery": {field: {"r2": {regressor: R^2},
         "between_instance_share"}} for :data:`PARAMETER_FIELDS` then :data:`STROKE_FIELDS`, "recovery_folds",
-        "n_objects"}.
+        "n_objects", "feature_config": the front end the statistics pooled (``config.splits.features``) as JSON
+        data}.
 
     Raises:
         ValueError: ``samples`` and ``records`` differ in length or a sample's instance is not its record's.
@@ -224,7 +226,7 @@ def run_parameter_probe(records: Sequence[StrokeRecord], samples: Sequence[Mater
                         "between_instance_share": round(between_share(targets[:, j], instances), 3)}
                 for j, field in enumerate(PARAMETER_FIELDS + STROKE_FIELDS)}
     return {"oracle": oracle, "recovery": recovery, "recovery_folds": config.recovery_folds,
-            "n_objects": int(len(np.unique(groups)))}
+            "n_objects": int(len(np.unique(groups))), "feature_config": dataclasses.asdict(config.splits.features)}
 
 
 def plot_parameter_probe(path: str | Path, result: Mapping[str, Any]) -> Path:

@@ -22,6 +22,8 @@ networks' best epochs were chosen on; the test part is scored only when asked (`
 
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -130,10 +132,12 @@ def run_pooled_statistics(records: Sequence[StrokeRecord], config: PooledStatist
     Returns:
         {"runs": [{"task", "seed", "fold", "features", "classifier", "n_train", "n_val", "val_accuracy_pct"
         [, "n_test", "test_accuracy_pct"]}, ...], "means": {task: {features: {classifier: {"val_accuracy_pct"
-        [, "test_accuracy_pct"]}}}}, "read_test": bool}. Accuracies in percent.
+        [, "test_accuracy_pct"]}}}}, "read_test": bool, "feature_config": the front end ``config.features`` as
+        JSON data}. Accuracies in percent.
     """
     matrices = stroke_matrices(records, config.features, progress=progress)
-    return score_on_splits(records, {name: matrices[name] for name in config.feature_sets}, config, progress)
+    return {**score_on_splits(records, {name: matrices[name] for name in config.feature_sets}, config, progress),
+            "feature_config": dataclasses.asdict(config.features)}
 
 
 def score_on_splits(records: Sequence[StrokeRecord], matrices: Mapping[str, np.ndarray],

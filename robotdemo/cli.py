@@ -237,12 +237,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise RobotDemoError("bench statistics needs --data DIR (a data set folder)")
         from perception.dataset import load_dataset
         from perception.pooled_statistics import PooledStatisticsConfig, run_pooled_statistics
-        from perception.checkpoint import config_to_dict
-        features = _feature_config(None, args.accel_axes)
-        result = {"data": args.data, "feature_config": config_to_dict(features),
-                  **run_pooled_statistics(load_dataset(args.data).records,
-                                          PooledStatisticsConfig(read_test=args.read_test, features=features),
-                                          progress=True)}
+        config = PooledStatisticsConfig(read_test=args.read_test, features=_feature_config(None, args.accel_axes))
+        result = {"data": args.data, **run_pooled_statistics(load_dataset(args.data).records, config, progress=True)}
     elif args.what == "parameters":
         if not args.data:
             raise RobotDemoError("bench parameters needs --data DIR (a data set recorded by robotdemo dataset)")

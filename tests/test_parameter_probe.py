@@ -58,6 +58,7 @@ def test_recovery_reads_back_what_the_strokes_carry_and_not_what_they_do_not(pro
     records, samples, result = probed
     recovery = result["recovery"]
     assert list(recovery) == list(PARAMETER_FIELDS + STROKE_FIELDS) and result["n_objects"] == 36
+    assert result["feature_config"]["accel"]["channel_groups"] == ()  # the front end the statistics pooled, named
     assert recovery["density_kg_m3"]["r2"]["ridge"] > 0.8, recovery["density_kg_m3"]
     assert recovery["target_force_n"]["r2"]["ridge"] > 0.8, recovery["target_force_n"]
     for field in ("roughness_rms_m", "loss_factor", "speed_mps"):  # independent of every stream

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 
-from perception.checkpoint import config_to_dict
 from perception.dataset import load_dataset
 from perception.features import FeatureConfig
 from perception.parameter_probe import ParameterProbeConfig, run_parameter_probe
@@ -30,5 +29,4 @@ def run_parameters_benchmark(data_dir: str | os.PathLike, read_test: bool = Fals
     samples = drawn_materials(data.records, progress=progress)
     config = ParameterProbeConfig(splits=PooledStatisticsConfig(read_test=read_test, features=features))
     return {"data": os.fspath(data_dir), "data_manifest_sha256": data.manifest_sha256,
-            "feature_config": config_to_dict(features),
             **run_parameter_probe(data.records, samples, config, progress=progress)}
