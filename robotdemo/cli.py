@@ -172,7 +172,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.status:
         config = command_config(args.quick, not args.no_ablation, not args.no_robustness, args.corruption_stds,
-                                args.seeds, single_sensor=not args.no_single_sensor)
+                                args.seeds, single_sensor=not args.no_single_sensor, accel_axes=args.accel_axes)
         status = evaluation_status(args.data, args.out, fire_dir=args.fire, config=config)
         print(json.dumps(status, indent=2))
         for name, match in status["data"].items():
@@ -188,7 +188,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                                seeds=args.seeds, command=" ".join(sys.argv), progress=not args.quiet,
                                workers=args.workers, ablation=not args.no_ablation,
                                robustness=not args.no_robustness, corruption_stds=args.corruption_stds,
-                               single_sensor=not args.no_single_sensor)
+                               single_sensor=not args.no_single_sensor, accel_axes=args.accel_axes)
     print(json.dumps(summary, indent=2, default=str))
     return 0
 
@@ -445,6 +445,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--corruption-stds", type=float, nargs="+", default=None, metavar="STD",
                           help="the robustness curve's noise intensities, stds in units of the per-channel "
                                "training feature std (default 1 3 5)")
+    evaluate.add_argument("--accel-axes", choices=ACCEL_AXES_CHOICES, default="sum",
+                          help="not the paper's: every network's accelerometer front end as train's --accel-axes "
+                               "(default sum); the report lists it among the deviations. Give it its own --out: "
+                               "its runs take the same folder names")
     evaluate.add_argument("--status", action="store_true",
                           help="print how many of the evaluation's network runs the run store in --out holds, per "
                                "experiment, and stop (nothing is trained or written)")

@@ -395,31 +395,57 @@ def test_inference_benchmark_reports_latency(tmp_path):
         run_inference_benchmark("no-such-model", n=1)
 
 
-def test_evaluate_cli_takes_the_noise_intensities(tmp_path, capsys):
+def test_evaluate_cli_takes_the_noise_intensities_and_the_accelerometer_front_end(tmp_path, capsys):
     from robotdemo.cli import main
 
     torch.set_num_threads(1)
     _write_toy_clean_and_fire(tmp_path)
     args = ["evaluate", "--data", str(tmp_path / "clean"), "--quick", "--no-ablation", "--quiet", "--seeds", "0"]
-    assert main([*args, "--out", str(tmp_path / "report"), "--corruption-stds", "2", "--no-single-sensor"]) == 0
+    split = ["--accel-axes", "normal-tangential"]
+    assert main([*args, *split, "--out", str(tmp_path / "report"), "--corruption-stds", "2",
+                 "--no-single-sensor"]) == 0
     capsys.readouterr()
     saved = json.loads((tmp_path / "report" / "results.json").read_text())
+    report = (tmp_path / "report" / "REPORT.md").read_text()
     assert "single_sensor" not in saved and not (tmp_path / "report" / "runs" / "single_sensor").exists()
-    assert "Not run in this report (`--no-single-sensor`)" in (tmp_path / "report" / "REPORT.md").read_text()
+    assert "Not run in this report (`--no-single-sensor`)" in report
     assert saved["robustness"]["corruption_stds"] == [2.0]
     assert [level["corruption_std"] for level in saved["robustness"]["levels"]] == [2.0]
     assert (tmp_path / "report" / "runs" / "ssmc" / "lstm" / "seed0_p0.5_std2").is_dir()
+    # every network run, the robustness runs too, was trained on the split accelerometer front end, and the
+    # report says so among its deviations
+    for run in ("ssmc/touchformer/seed0_p0.0", "usmc/mtcnn/seed0_fold0_p0.0", "ssmc/lstm/seed0_p0.5_std2"):
+        ckpt = load_checkpoint(tmp_path / "report" / "runs" / run / "checkpoint")
+        assert ckpt.feature_config.accel.channel_groups == ((2,), (0, 1)), run
+    assert saved["deviations"]["accel_front_end"].startswith("every network's accelerometer front end keeps channel "
+                                                             "groups [[2], [0, 1]] apart")
+    assert "- **accel_front_end**: every network's accelerometer front end" in report
     for stds, stored in (("2", 8), ("3", 0)):  # --status counts the runs of the evaluation the options ask for
-        assert main([*args, "--out", str(tmp_path / "report"), "--corruption-stds", stds, "--status"]) == 0
+        assert main([*args, *split, "--out", str(tmp_path / "report"), "--corruption-stds", stds, "--status"]) == 0
         status = json.loads(capsys.readouterr().out)
         assert status["experiments"]["robustness"] == {"stored": stored, "runs": 8}  # 4 networks at p = 0.5, 1
         assert status["experiments"]["table1"]["stored"] == status["experiments"]["table1"]["runs"] == 16
         assert status["experiments"]["single_sensor"] == {"stored": 0, "runs": 4}  # left out of the run above
+    # the summed front end (the default) is another evaluation: none of its network runs is stored yet
+    assert main([*args, "--out", str(tmp_path / "report"), "--corruption-stds", "2", "--status"]) == 0
+    status = json.loads(capsys.readouterr().out)
+    assert status["experiments"]["robustness"]["stored"] == status["experiments"]["table1"]["stored"] == 0
     for bad in ("-1", "0", "nan"):
         code = main([*args, "--out", str(tmp_path / "bad"), "--corruption-stds", "3", bad])
         err = capsys.readouterr().err
         assert code == 2 and "corruption_stds must be one or more finite noise stds > 0" in err
         assert len(err.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
+
+
+def test_command_config_sets_every_runs_accelerometer_front_end_and_names_an_unknown_one():
+    from perception.evaluate import command_config
+
+    assert command_config().train.feature_config.accel.channel_groups == ()  # the paper's summed spectrum
+    config = command_config(quick=True, accel_axes="normal-tangential")
+    assert config.train.feature_config.accel.channel_groups == ((2,), (0, 1))
+    assert config.train.epochs == quick_config().train.epochs  # the rest of the quick settings kept
+    with pytest.raises(ValueError, match="accel_axes must be one of \\['normal-tangential', 'sum'\\], got 'xyz'"):
+        command_config(accel_axes="xyz")
 
 
 def test_run_store_keeps_outcomes_and_names_a_bad_line(tmp_path):
