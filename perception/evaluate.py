@@ -62,7 +62,7 @@ from tqdm.auto import tqdm
 from perception.checkpoint import load_checkpoint
 from perception.dataset import (Dataset, fine_split, labels_of, load_dataset, ssmc_split, usmc_folds,
                                 validation_split)
-from perception.features import ACCEL_AXES, feature_dims, keep_modalities
+from perception.features import feature_dims, keep_modalities, with_accel_axes
 from perception.numerics import numeric_environment, numerics_differences
 from perception.paired import paired_comparison
 from perception.probes import ALTERATIONS, alter, swap_summaries
@@ -1307,12 +1307,8 @@ def command_config(quick: bool = False, ablation: bool = True, robustness: bool 
     Raises:
         ValueError: ``accel_axes`` is not a key of :data:`~perception.features.ACCEL_AXES`.
     """
-    if accel_axes not in ACCEL_AXES:
-        raise ValueError(f"accel_axes must be one of {sorted(ACCEL_AXES)}, got {accel_axes!r}")
     config = quick_config() if quick else EvalConfig()
-    fc = config.train.feature_config
-    train = dataclasses.replace(config.train, feature_config=dataclasses.replace(
-        fc, accel=dataclasses.replace(fc.accel, channel_groups=ACCEL_AXES[accel_axes])))
+    train = dataclasses.replace(config.train, feature_config=with_accel_axes(config.train.feature_config, accel_axes))
     return dataclasses.replace(config, ablation=ablation and config.ablation, train=train,
                                robustness_models=config.robustness_models if robustness else (),
                                single_sensor_models=config.single_sensor_models if single_sensor else (),

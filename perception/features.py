@@ -135,6 +135,17 @@ class FeatureConfig:
         object.__setattr__(self, "modalities", tuple(m for m in MODALITIES if m in self.modalities))
 
 
+def with_accel_axes(config: FeatureConfig, accel_axes: str) -> FeatureConfig:
+    """``config`` with its accelerometer spectra grouped as :data:`ACCEL_AXES` names (``--accel-axes``).
+
+    Raises:
+        ValueError: ``accel_axes`` is not a key of :data:`ACCEL_AXES`.
+    """
+    if accel_axes not in ACCEL_AXES:
+        raise ValueError(f"accel_axes must be one of {sorted(ACCEL_AXES)}, got {accel_axes!r}")
+    return dataclasses.replace(config, accel=dataclasses.replace(config.accel, channel_groups=ACCEL_AXES[accel_axes]))
+
+
 def feature_dims(config: FeatureConfig) -> dict[str, int]:
     """Feature channels C_m per modality, in :data:`MODALITIES` order."""
     return {

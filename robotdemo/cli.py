@@ -126,14 +126,12 @@ parser does not import the front end and torch)."""
 def _feature_config(modalities: str | None, accel_axes: str = "sum") -> FeatureConfig:
     """The default front end, restricted to ``--modalities`` when given, its accelerometer spectra grouped by
     ``--accel-axes``."""
-    import dataclasses
-
-    from perception.features import ACCEL_AXES, FeatureConfig
+    from perception.features import FeatureConfig, with_accel_axes
 
     config = FeatureConfig()
     if modalities is not None:
         config = FeatureConfig(modalities=tuple(m.strip() for m in modalities.split(",") if m.strip()))
-    return dataclasses.replace(config, accel=dataclasses.replace(config.accel, channel_groups=ACCEL_AXES[accel_axes]))
+    return with_accel_axes(config, accel_axes)
 
 
 def _model_option(text: str) -> tuple[str, object]:
