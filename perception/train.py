@@ -698,7 +698,7 @@ def run_identity(config: TrainConfig, n_classes: int) -> dict[str, Any]:
     model_config = config_cls(in_dims=in_dims, n_classes=n_classes, **model_overrides(config))
     model_json = _model_config_json(config_cls, config_to_dict(model_config))
     for name, value in getattr(config_cls, "IDENTITY_OMITS", {}).items():
-        if model_json.get(name) == value:
+        if name in model_json and model_json[name] == json.loads(json.dumps(value)):  # () is [] in JSON
             del model_json[name]  # a field added since the runs were stored, at what they did
     return {"config": _trained_config(config), "model_config": model_json}
 
