@@ -23,7 +23,6 @@ networks' best epochs were chosen on; the test part is scored only when asked (`
 from __future__ import annotations
 
 import dataclasses
-
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
