@@ -62,7 +62,13 @@ PLACEMENT_FIELDS = ("device", "num_threads")
 TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0, "mixup_alpha": 0.0,
                                          "aux_parameters_weight": 0.0}
 # The same for fields added to a front end's config (each of feature_config's spectral front ends)
-SPECTRAL_IDENTITY_OMITS: dict[str, Any] = {"channel_groups": []}
+SPECTRAL_IDENTITY_OMITS: dict[str, Any] = {"channel_groups": ()}
+
+
+def _without_omitted(data: Mapping[str, Any], omits: Mapping[str, Any]) -> dict[str, Any]:
+    """``data`` (JSON data) without the fields of ``omits`` that hold the value given there, compared as JSON
+    (a tuple default is a list in ``data``)."""
+    return {k: v for k, v in data.items() if not (k in omits and v == json.loads(json.dumps(omits[k])))}
 
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
@@ -677,13 +683,11 @@ def _trained_config(config: TrainConfig) -> dict[str, Any]:
     """``config`` as plain JSON without its :data:`PLACEMENT_FIELDS` (and the :data:`TRAIN_IDENTITY_OMITS` and,
     in its spectral front ends, the :data:`SPECTRAL_IDENTITY_OMITS` at their given values): what a run folder's
     identity holds."""
-    trained = {k: v for k, v in config.to_dict().items()
-               if k not in PLACEMENT_FIELDS and not (k in TRAIN_IDENTITY_OMITS and v == TRAIN_IDENTITY_OMITS[k])}
+    trained = _without_omitted({k: v for k, v in config.to_dict().items() if k not in PLACEMENT_FIELDS},
+                               TRAIN_IDENTITY_OMITS)
+    features = trained["feature_config"]
     for front_end in ("sound", "accel"):
-        spectral = trained["feature_config"][front_end]
-        for name, value in SPECTRAL_IDENTITY_OMITS.items():
-            if spectral.get(name) == value:
-                del spectral[name]
+        features[front_end] = _without_omitted(features[front_end], SPECTRAL_IDENTITY_OMITS)
     return trained
 
 
@@ -697,9 +701,8 @@ def run_identity(config: TrainConfig, n_classes: int) -> dict[str, Any]:
     in_dims = tuple(feature_dims(config.feature_config)[m] for m in MODALITIES)
     model_config = config_cls(in_dims=in_dims, n_classes=n_classes, **model_overrides(config))
     model_json = _model_config_json(config_cls, config_to_dict(model_config))
-    for name, value in getattr(config_cls, "IDENTITY_OMITS", {}).items():
-        if name in model_json and model_json[name] == json.loads(json.dumps(value)):  # () is [] in JSON
-            del model_json[name]  # a field added since the runs were stored, at what they did
+    # fields added since the runs were stored, left out at what those runs did
+    model_json = _without_omitted(model_json, getattr(config_cls, "IDENTITY_OMITS", {}))
     return {"config": _trained_config(config), "model_config": model_json}
 
 
