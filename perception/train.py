@@ -70,6 +70,7 @@ def _without_omitted(data: Mapping[str, Any], omits: Mapping[str, Any]) -> dict[
     (a tuple default is a list in ``data``)."""
     return {k: v for k, v in data.items() if not (k in omits and v == json.loads(json.dumps(omits[k])))}
 
+
 DEVIATIONS: dict[str, str] = {
     "optimizer": (
         "AdamW (decoupled weight decay 0.01) at lr 3e-3 instead of the paper's Adam, weight decay 0.1, lr 0.1. "
