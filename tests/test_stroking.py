@@ -10,7 +10,8 @@ from robotdemo.dataset import DatasetConfig
 from robotdemo.motion import ArmMotion
 from robotdemo.scene import Scene, SceneConfig
 from robotdemo.sim import SimConfig
-from robotdemo.stroking import StrokeExecution, cruise_speed_mps, move_pad_above, run_stroke, top_surface_point
+from robotdemo.stroking import (StrokeExecution, cruise_speed_mps, move_pad_above, opposing_slip, run_stroke,
+                                top_surface_point)
 
 # (category, seed, target force N): rubber is the soft surface (contact stiffness ~5e4 N/m), cast iron and
 # pine the hard ones (~3e5 N/m, the top of what the simulation takes).
@@ -295,3 +296,46 @@ def test_the_tick_reads_the_same_shear_from_the_log_as_from_the_contacts():
         assert logged.pad_force_n > 1.0
         assert logged.pad_force_n == pytest.approx(pad_normal_force_n(scene, obj), rel=1e-12)
         np.testing.assert_allclose(logged.pad_shear_n, pad_shear_force_n(scene, obj), rtol=1e-12, atol=1e-12)
+
+
+def test_opposing_slip_turns_sliding_friction_against_the_slip_and_keeps_static_friction():
+    shear = np.array([[[0.3, 0.4]], [[0.3, 0.4]]])  # (T=2, P=1, 2), 0.5 N each
+    slip = np.array([[0.0, 0.0], [0.0, 0.03]])  # stuck, then sliding along +y at 30 mm/s
+    out = opposing_slip(shear, slip)
+    np.testing.assert_allclose(out[0], shear[0])  # no slip: the static friction stays as the simulator gave it
+    np.testing.assert_allclose(out[1, 0], [0.0, -0.5], atol=1e-3)  # sliding: mu N, against the slip
+    np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 0.5, rtol=3e-3)
+
+
+def test_a_heavy_clamped_block_is_stroked_at_a_steady_speed_with_friction_against_the_slip():
+    """The data set's fixture on a 0.94 kg steel block turned 0.3 rad in the world, stroked along its length at
+    30 mm/s. The pad's speed over it holds steady from one physics step to the next (with the joint targets held
+    for a whole control tick it ran 46 / 34 / 24 / 16 mm/s over each tick's four steps), and the friction on the
+    pad opposes the slip with magnitude mu_k N (PyBullet's own pointed 29 degrees off)."""
+    from perception.materials import contact_dynamics, default_catalogue, nominal_sample
+    from robotdemo.scene import ObjectSpec
+
+    sample, size, yaw = nominal_sample(default_catalogue().instance("steel")), (0.06, 0.05, 0.04), 0.3
+    spec = ObjectSpec(name="steel_block", shape="box", size_m=size, xy_m=(-0.21, 0.0), yaw_rad=yaw, material=sample,
+                      dynamics=contact_dynamics(sample, size, "box"))
+    sim = SimConfig().with_solver_iterations(DatasetConfig().solver_iterations)
+    with Scene(SceneConfig(n_objects=0, seed=1, sim=sim), objects=[spec]) as scene:
+        obj = scene.objects[0]
+        scene.clamp(obj)
+        motion = ArmMotion(scene.robot)
+        config = StrokeConfig(target_force_n=3.0, speed_mps=0.03, length_m=0.03, direction_rad=yaw,
+                              start_point_m=tuple(top_surface_point(scene, obj, (-0.015, 0.0))))
+        move_pad_above(scene, motion, config)
+        result = run_stroke(scene, motion, obj, config)
+    assert result.success, result.failure_reason
+    trace = result.trace
+    normal, shear, velocity = trace.total_normal_force_n(), trace.total_shear_force_n(), trace.pad_velocity_mps[:, :2]
+    speed = np.linalg.norm(velocity, axis=1)
+    sliding = np.flatnonzero((speed > 0.5 * config.speed_mps) & (normal > 0.5 * config.target_force_n))
+    steady = sliding[len(sliding) // 4: 3 * len(sliding) // 4]
+    assert steady.size > 300
+    assert np.std(speed[steady]) < 0.02 * config.speed_mps, speed[steady[:8]]
+    cosine = -np.sum(shear[steady] * velocity[steady], axis=1) / (np.linalg.norm(shear[steady], axis=1) * speed[steady])
+    assert np.all(cosine > np.cos(np.radians(1.0))), np.degrees(np.arccos(cosine.min()))
+    assert np.median(np.linalg.norm(shear[steady], axis=1) / normal[steady]) == pytest.approx(
+        sample.friction_kinetic, rel=0.02)
