@@ -10,7 +10,7 @@ import scipy.signal
 
 from perception.contact_trace import ContactTrace, ContactTraceError, ObjectInfo, synthetic_press_slide_trace
 from perception.materials import MaterialSample, default_catalogue, nominal_sample
-from perception.sensors.contact_excitation import compute_contact_excitation
+from perception.sensors.contact_excitation import ContactConfig, compute_contact_excitation
 from perception.sensors.imu import ImuConfig, imu_stream
 from perception.sensors.sound import modal_impulse_response
 from perception.sensors.taxels import TaxelArrayConfig, taxel_centres_m
@@ -138,6 +138,43 @@ def test_normal_centroid_follows_the_contact_along_the_stroke():
         shift = late @ centres / late.sum() - early @ centres / early.sum()
         assert shift @ np.asarray(direction) > 0.002, shift
         assert abs(shift @ np.array([-direction[1], direction[0]])) < 0.001
+
+
+def _excitation(sample: MaterialSample, trace: ContactTrace, config: ContactConfig = ContactConfig()):
+    return compute_contact_excitation(trace, ObjectInfo(sample, SIZE_M, "box", surface_seed=7),
+                                      make_surface_texture(sample, SIZE_M, 7), np.random.default_rng(0), config)
+
+
+def test_sliding_friction_follows_the_textures_normal_force():
+    """Coulomb: while the pad slides, F = mu N, so where the texture presses the surface harder into the pad the
+    friction rises by the same share. With the slope's tilt and stick-slip switched off, nothing else moves the
+    friction: its relative change is the normal force's."""
+    sample = dataclasses.replace(_sample("sandstone"), friction_static=_sample("sandstone").friction_kinetic)
+    trace = synthetic_press_slide_trace(friction_coefficient=sample.friction_kinetic)
+    excitation = _excitation(sample, trace, dataclasses.replace(ContactConfig(), max_texture_slope=0.0))
+    times = np.arange(excitation.num_samples) / excitation.rate_hz
+    steady = (times > SLIDE_START_S + 0.1) & (times < SLIDE_END_S - 0.1)
+    assert np.std(excitation.normal_modulation[steady]) > 0.01  # the texture does move the normal force
+    np.testing.assert_allclose(excitation.shear_modulation[steady], excitation.normal_modulation[steady],
+                               rtol=0.0, atol=0.01 * np.std(excitation.normal_modulation[steady]))
+
+
+def test_slide_direction_on_object_is_the_pads_motion_over_the_object():
+    """The object's modes lie along its own x and y extents, so the sound needs the slide's direction in the
+    object frame, which differs from the pad frame whenever the pad is turned on the object: here the pad slides
+    along its own x while it moves along the object's -y."""
+    sample = _sample("nylon")
+    trace = synthetic_press_slide_trace(friction_coefficient=sample.friction_kinetic, start_on_object_m=(0.0, 0.015))
+    on_object = trace.pad_position_on_object_m - trace.pad_position_on_object_m[0]
+    turned = dataclasses.replace(trace, pad_position_on_object_m=trace.pad_position_on_object_m[0]
+                                 + np.column_stack([on_object[:, 1], -on_object[:, 0]]))
+    excitation = _excitation(sample, turned)
+    times = np.arange(excitation.num_samples) / excitation.rate_hz
+    steady = (times > SLIDE_START_S + 0.1) & (times < SLIDE_END_S - 0.1)
+    np.testing.assert_allclose(excitation.slide_direction[steady], np.tile([1.0, 0.0], (steady.sum(), 1)), atol=1e-6)
+    np.testing.assert_allclose(excitation.slide_direction_on_object[steady], np.tile([0.0, -1.0], (steady.sum(), 1)),
+                               atol=1e-6)
+    assert np.all(excitation.slide_direction_on_object[times < SLIDE_START_S - 0.05] == 0.0)  # still: no direction
 
 
 def test_touch_down_impact_reaches_the_accelerometer():

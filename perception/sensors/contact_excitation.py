@@ -10,6 +10,7 @@ coefficient). On top of them this module adds what a 1 kHz rigid-body step canno
   Hertz-like contact). The local slope along the path tilts the contact: mu_eff ~ mu_k + (1 + mu_k^2)
   slope. Both are averaged over the contact width: a patch of width 2a over a surface of correlation
   length xi holds ~2a / xi independent asperities, so fluctuations scale by kappa = sqrt(min(1, xi / 2a)).
+  While the pad slides, friction follows both (Coulomb, F = mu N): dF / F = (1 + dN / N)(1 + dmu / mu) - 1.
   Sub-probe roughness (the full profile minus the probe-smoothed one) gives the broadband asperity force
   that makes friction noise.
 * Stick-slip (spring-block, Karnopp-style, solved in closed form). The pad's elastomer is a tangential
@@ -91,9 +92,12 @@ class ContactExcitation:
         normal_force_n: (M,) simulator's total normal force, interpolated, N.
         slide_speed_mps: (M,) tangential pad speed over the object, m/s.
         slide_direction: (M, 2) unit direction of the pad's motion, pad frame (zero when still).
+        slide_direction_on_object: (M, 2) the same direction in the object frame (zero when still): what the
+            object's own modes along its x and y extents see.
         position_on_object_m: (M, 2) pad centre on the top face, object frame, m.
         normal_modulation: (M,) relative change of the normal force from texture, dN / N.
-        shear_modulation: (M,) relative change of the friction force from texture slope and stick-slip.
+        shear_modulation: (M,) relative change of the friction force while sliding: the texture's change of the
+            normal force (Coulomb), its slope and stick-slip.
         normal_fluctuation_n: (M,) texture force on the pad along its normal (coherent + asperity), N.
         shear_fluctuation_n: (M,) friction force fluctuation along the slide direction, N.
         impact_force_n: (M,) touch-down force pulses, N.
@@ -103,6 +107,7 @@ class ContactExcitation:
     normal_force_n: np.ndarray
     slide_speed_mps: np.ndarray
     slide_direction: np.ndarray
+    slide_direction_on_object: np.ndarray
     position_on_object_m: np.ndarray
     normal_modulation: np.ndarray
     shear_modulation: np.ndarray
@@ -173,13 +178,17 @@ def compute_contact_excitation(trace: ContactTrace, obj: ObjectInfo, texture: Su
     fs = cfg.fine_rate_hz
     n_fine = int(math.floor(trace.duration_s * fs)) + 1
     t_fine = np.arange(n_fine) / fs
-    physics = np.column_stack([trace.total_normal_force_n(), trace.pad_position_on_object_m, trace.pad_velocity_mps[:, :2]])
-    fine = interpolate_uniform(physics, trace.rate_hz, t_fine)  # (M, 5)
+    velocity_on_object = np.gradient(trace.pad_position_on_object_m, trace.t_s, axis=0)  # (T, 2) m/s
+    physics = np.column_stack([trace.total_normal_force_n(), trace.pad_position_on_object_m, trace.pad_velocity_mps[:, :2],
+                               velocity_on_object])
+    fine = interpolate_uniform(physics, trace.rate_hz, t_fine)  # (M, 7)
     normal = np.maximum(fine[:, 0], 0.0)
     position = fine[:, 1:3]
     velocity = fine[:, 3:5]
     speed = np.hypot(velocity[:, 0], velocity[:, 1])
     direction = velocity / np.maximum(speed, 1e-12)[:, None] * (speed > 1e-9)[:, None]
+    speed_on_object = np.hypot(fine[:, 5], fine[:, 6])
+    direction_on_object = fine[:, 5:7] / np.maximum(speed_on_object, 1e-12)[:, None] * (speed_on_object > 1e-9)[:, None]
     in_contact = normal > cfg.contact_threshold_n
     sliding = in_contact * (speed**2 / (speed**2 + cfg.min_slide_speed_mps**2))
 
@@ -203,13 +212,14 @@ def compute_contact_excitation(trace: ContactTrace, obj: ObjectInfo, texture: Su
 
     normal_mod = np.clip(dn_texture / np.maximum(normal, cfg.contact_threshold_n),
                          -cfg.max_normal_modulation, cfg.max_normal_modulation)
-    shear_mod = dmu_rel + ripple
+    shear_mod = (1.0 + normal_mod * sliding) * (1.0 + dmu_rel + ripple) - 1.0  # Coulomb: F = mu N
     impact = _impact_pulses(trace, n_fine, k_series, mat.restitution, cfg)
     return ContactExcitation(
         rate_hz=fs,
         normal_force_n=normal,
         slide_speed_mps=speed,
         slide_direction=direction,
+        slide_direction_on_object=direction_on_object,
         position_on_object_m=position,
         normal_modulation=normal_mod,
         shear_modulation=shear_mod,

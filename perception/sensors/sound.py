@@ -220,7 +220,8 @@ def contact_sound(excitation: ContactExcitation, obj: ObjectInfo, rng: np.random
     size = obj.size_m
     distance = rng.uniform(*cfg.mic_distance_range_m)
     support = cfg.support_loss_factor * math.exp(0.3 * rng.standard_normal())
-    friction_along = excitation.shear_fluctuation_n[:, None] * excitation.slide_direction  # (M, 2)
+    # along the object's x and y extents (the modes' axes), not the pad's
+    friction_along = excitation.shear_fluctuation_n[:, None] * excitation.slide_direction_on_object  # (M, 2)
     flexural_drive = (excitation.normal_fluctuation_n + excitation.impact_force_n
                       + cfg.flexure_from_friction * excitation.shear_fluctuation_n)
     xi = excitation.position_on_object_m / np.asarray(size[:2]) + 0.5  # (M, 2)
