@@ -345,7 +345,7 @@ class StrokeExecution:
         # servo jerk the pad forward at each tick and brake it in between: a sawtooth in the sliding speed at the
         # tick rate (46 / 34 / 24 / 16 mm/s at 30 mm/s) that every material would share and the accelerometer
         # would record. (The tick's joint velocity as the motors' target velocity as well would make them push
-        # on into the surface at touch-down: 2.3 times the target force on granite, under 1.3 without.)
+        # on into the surface at touch-down: 2.3 times the target force on granite, 1.05 times without.)
         sim.use_step_mode("fine")
         for k in range(1, motion.substeps + 1):
             robot.command_arm(q_from + (self.q - q_from) * (k / motion.substeps))
