@@ -120,6 +120,12 @@ class ContactExcitation:
         return int(self.normal_force_n.shape[0])
 
 
+def _speed_and_direction(velocity_mps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) speed, m/s, and (M, 2) unit direction of a planar velocity (zero where it is still)."""
+    speed = np.hypot(velocity_mps[:, 0], velocity_mps[:, 1])
+    return speed, velocity_mps / np.maximum(speed, 1e-12)[:, None] * (speed > 1e-9)[:, None]
+
+
 def _stick_slip_ripple(normal_n: np.ndarray, speed_mps: np.ndarray, sliding: np.ndarray, mu_s: float, mu_k: float,
                        rng: np.random.Generator, cfg: ContactConfig) -> np.ndarray:
     """Relative friction ripple (F - mu_k N) / (mu_k N) of the spring-block sawtooth, (M,)."""
@@ -185,10 +191,8 @@ def compute_contact_excitation(trace: ContactTrace, obj: ObjectInfo, texture: Su
     normal = np.maximum(fine[:, 0], 0.0)
     position = fine[:, 1:3]
     velocity = fine[:, 3:5]
-    speed = np.hypot(velocity[:, 0], velocity[:, 1])
-    direction = velocity / np.maximum(speed, 1e-12)[:, None] * (speed > 1e-9)[:, None]
-    speed_on_object = np.hypot(fine[:, 5], fine[:, 6])
-    direction_on_object = fine[:, 5:7] / np.maximum(speed_on_object, 1e-12)[:, None] * (speed_on_object > 1e-9)[:, None]
+    speed, direction = _speed_and_direction(velocity)
+    _, direction_on_object = _speed_and_direction(fine[:, 5:7])
     in_contact = normal > cfg.contact_threshold_n
     sliding = in_contact * (speed**2 / (speed**2 + cfg.min_slide_speed_mps**2))
 
