@@ -53,7 +53,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 from sklearn.metrics import recall_score
@@ -820,7 +820,8 @@ def evaluation_status(data_dir: str | os.PathLike, out_dir: str | os.PathLike,
     featurised, trained or written. The reference classifier is not counted: it is fitted afresh each time, in
     seconds. A run of two experiments (Table 1's SSMC runs are the robustness curve's p = 0) counts in the
     first. ``data`` says for each data set whether its strokes are those the stored runs were trained on
-    (:func:`kept_manifest_match`)."""
+    (:func:`kept_manifest_match`). ``interim``: the test accuracies the stored runs give so far
+    (:func:`_interim_accuracy`)."""
     cfg = config or EvalConfig()
     out_dir = Path(out_dir)
     ctx = _Context(data=load_dataset(data_dir), out_dir=out_dir, config=cfg, features=[],
@@ -834,7 +835,8 @@ def evaluation_status(data_dir: str | os.PathLike, out_dir: str | os.PathLike,
               "fire": [r[kind] for r in fire_runs for kind in ("clean", "finetuned", "scratch")],
               "single_sensor": [job for _, job in _single_sensor_jobs(ctx)],
               "robustness": rob}
-    stored = set(RunStore(out_dir / OUTCOMES_FILE).load())
+    outcomes = RunStore(out_dir / OUTCOMES_FILE).load()
+    stored = set(outcomes)
     counted: set[str] = set()
     experiments = {}
     for name, group in groups.items():
@@ -849,7 +851,62 @@ def evaluation_status(data_dir: str | os.PathLike, out_dir: str | os.PathLike,
     if ctx.fire is not None and cfg.robustness_fire and rob:  # scores of stored runs, no training of their own
         ids = {_zero_shot_id(ctx, job) for job in rob}
         status["robustness_fire_scores"] = {"stored": len(ids & stored), "scores": len(ids)}
+    status["interim"] = _interim_accuracy(ctx.config, groups["table1"] + groups["ablation"], rob,
+                                          lambda job: _stored_accuracy(ctx, job, outcomes))
     return status
+
+
+def _stored_accuracy(ctx: _Context, job: _TrainJob, outcomes: Mapping[str, Mapping[str, Any]]) -> float | None:
+    """Test accuracy (fraction) of ``job``'s stored run, read from its stored predictions; None if not stored."""
+    outcome = outcomes.get(_outcome_id(ctx, job))
+    if outcome is None:
+        return None
+    records, _, _ = _source(ctx, job.source)
+    names = _job_names(ctx, job)
+    y_test = np.array([names.index(l) for l in labels_of(records, job.task)])[job.split[1]]
+    return float(np.mean(np.asarray(outcome["pred"]["none"], dtype=np.int64) == y_test))
+
+
+def _interim_accuracy(cfg: EvalConfig, jobs: Sequence[_TrainJob], rob: Sequence[_TrainJob],
+                      accuracy: Callable[[_TrainJob], float | None]) -> dict[str, Any]:
+    """What the stored runs say before the evaluation is complete: test accuracy [%] of each network's cell
+    (Table 1 and the ablation per task; the robustness curve per noise std and p), as the mean over the runs
+    stored so far with how many of how many; and per noise std, at how many ratios TouchFormer's mean is above
+    that of every baseline (a robustness model that is no TouchFormer variant), over the seeds stored for every
+    model and ratio of that std (``seeds``). Read from the run store's predictions: nothing is trained, and the
+    reference classifier is left out. ``accuracy``: a run's test accuracy (fraction), None where not stored."""
+    def cell(accuracies: Sequence[float | None]) -> dict[str, Any]:
+        done = [a for a in accuracies if a is not None]
+        return {"mean": round(100 * float(np.mean(done)), 1) if done else None, "stored": len(done),
+                "runs": len(accuracies)}
+
+    runs: dict[str, dict[str, list[float | None]]] = {}
+    for job in jobs:
+        if job.model != "reference":
+            runs.setdefault(job.task, {}).setdefault(job.model, []).append(accuracy(job))
+    interim: dict[str, Any] = {"tasks": {t: {m: cell(a) for m, a in by_model.items()} for t, by_model in runs.items()}}
+    if not rob:
+        return interim
+    by_cell = {(job.model, job.corruption, job.corruption_std if job.corruption > 0 else None, job.seed):
+               accuracy(job) for job in rob}
+    models = list(cfg.robustness_models)
+    levels = []
+    for std in cfg.corruption_stds:
+        def acc(m: str, p: float, seed: int, std: float = std) -> float | None:
+            return by_cell[(m, float(p), std if p > 0 else None, seed)]
+
+        seeds = [s for s in cfg.seeds if all(acc(m, p, s) is not None for m in models for p in cfg.corruption_ratios)]
+        level: dict[str, Any] = {"corruption_std": std, "curves": {
+            m: {repr(float(p)): cell([acc(m, p, s) for s in cfg.seeds]) for p in cfg.corruption_ratios}
+            for m in models}, "seeds": seeds}
+        baselines = [m for m in models if not m.startswith("touchformer")]  # as _paired_best_baseline
+        if "touchformer" in models and baselines and seeds:
+            mean = {m: [np.mean([acc(m, p, s) for s in seeds]) for p in cfg.corruption_ratios] for m in models}
+            level["touchformer_above_the_baselines_at"] = int(sum(
+                all(mean["touchformer"][i] > mean[b][i] for b in baselines) for i in range(len(cfg.corruption_ratios))))
+        levels.append(level)
+    interim["robustness"] = levels
+    return interim
 
 
 def evaluate(data_dir: str | os.PathLike, out_dir: str | os.PathLike, quick: bool = False,

@@ -449,7 +449,8 @@ def build_parser() -> argparse.ArgumentParser:
                                "its runs take the same folder names")
     evaluate.add_argument("--status", action="store_true",
                           help="print how many of the evaluation's network runs the run store in --out holds, per "
-                               "experiment, and stop (nothing is trained or written)")
+                               "experiment, and the test accuracies of those stored so far (interim), and stop "
+                               "(nothing is trained or written)")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(func=_cmd_evaluate)
 

@@ -501,6 +501,10 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     # and the robustness curve's two runs (p = 0 and 1) scored on fire strokes
     before = status()
     assert {name: match["kept"] for name, match in before.pop("data").items()} == {"clean": False, "fire": False}
+    interim = before.pop("interim")
+    assert {(c["mean"], c["stored"]) for cells in interim["tasks"].values() for c in cells.values()} == {(None, 0)}
+    assert sum(c["runs"] for cells in interim["tasks"].values() for c in cells.values()) == 8 + 4  # as above
+    assert interim["robustness"][0]["seeds"] == []
     assert before == {"store": str(out / OUTCOMES_FILE), "stored": 0, "runs": 20,
                       "experiments": {name: {"stored": 0, "runs": n} for name, n in runs.items()},
                       "robustness_fire_scores": {"stored": 0, "scores": 2}}
@@ -509,6 +513,17 @@ def test_an_evaluation_resumes_from_its_run_store_without_the_run_folders(tmp_pa
     assert outcomes["read"] == outcomes["scored_here"] > 0 and outcomes["from_store"] == 0
     assert status()["experiments"] == {name: {"stored": n, "runs": n} for name, n in runs.items()}
     assert status()["robustness_fire_scores"] == {"stored": 2, "scores": 2}
+    interim = status()["interim"]  # read from the store: the report's own figures
+    for task in ("ssmc", "usmc", "fine"):
+        for model, cell in interim["tasks"][task].items():
+            mean = (first["table1"][task][model]["accuracy"] if model in config.models
+                    else first["ablation"][model][task])["mean"]
+            assert cell == {"mean": round(100 * mean, 1), "stored": cell["runs"], "runs": cell["runs"]}
+    [level] = interim["robustness"]
+    assert level["seeds"] == list(config.seeds)
+    curve = first["robustness"]["levels"][0]["curves"]["lstm"]
+    assert {p: cell["mean"] for p, cell in level["curves"]["lstm"].items()} == {p: round(100 * a, 1)
+                                                                                for p, a in curve.items()}
     for name in ("clean", "fire"):  # the shards each stored run names, to compare a data set recorded again with
         [kept] = (out / "data_manifests").glob(f"{name}-*.json")
         assert json.loads(kept.read_text()) == json.loads((tmp_path / name / "manifest.json").read_text())
@@ -593,6 +608,35 @@ def test_a_robustness_run_is_scored_on_fire_strokes_by_the_worker_that_trains_it
     assert results["provenance"]["outcomes"]["scored_here"] == 0
     [level] = results["robustness"]["fire_zero_shot"]
     assert {a for runs in level["stored_test_agreement"]["lstm"].values() for a in runs} == {1.0}
+
+
+def test_interim_figures_count_only_seeds_stored_for_every_model_and_ratio():
+    from perception.evaluate import _interim_accuracy, _TrainJob
+
+    config = dataclasses.replace(quick_config(), seeds=(0, 1, 2), corruption_ratios=(0.0, 0.5, 1.0),
+                                 corruption_stds=(1.0, 5.0),
+                                 robustness_models=("touchformer", "lstm", "touchformer_soft"))
+    split = (np.arange(3), np.arange(3, 5))
+    rob = [_TrainJob(m, "ssmc", f"seed{s}", s, split, p, std if p > 0 else 1.0) for s in config.seeds
+           for m in config.robustness_models for std in config.corruption_stds for p in config.corruption_ratios
+           if p > 0 or std == 1.0]
+    table = [job for job in rob if job.corruption == 0.0]
+
+    def accuracy(job):  # TouchFormer above the LSTM at p > 0, below its own soft variant; seed 2 unfinished at std 5
+        if job.seed == 2 and job.corruption_std == 5.0 and job.corruption > 0 and job.model == "touchformer":
+            return None
+        base = {"touchformer": 0.6, "lstm": 0.5, "touchformer_soft": 0.9}[job.model]
+        return base - (0.2 if job.model == "touchformer" and job.corruption == 0.0 else 0.0) + 0.01 * job.seed
+
+    interim = _interim_accuracy(config, table, rob, accuracy)
+    assert interim["tasks"]["ssmc"]["lstm"] == {"mean": 51.0, "stored": 3, "runs": 3}
+    low, high = interim["robustness"]
+    assert low["seeds"] == [0, 1, 2] and high["seeds"] == [0, 1]
+    # p = 0.5 and 1.0: above the only baseline (the LSTM); the soft variant is no baseline
+    assert low["touchformer_above_the_baselines_at"] == high["touchformer_above_the_baselines_at"] == 2
+    assert high["curves"]["touchformer"]["1.0"] == {"mean": 60.5, "stored": 2, "runs": 3}
+    assert high["curves"]["touchformer"]["0.0"] == low["curves"]["touchformer"]["0.0"] == {
+        "mean": 41.0, "stored": 3, "runs": 3}  # p = 0 is one run for every std
 
 
 def test_status_tells_a_recording_made_with_other_numerics_from_one_made_by_other_code(tmp_path):
