@@ -887,13 +887,13 @@ def _interim_accuracy(cfg: EvalConfig, jobs: Sequence[_TrainJob], rob: Sequence[
     interim: dict[str, Any] = {"tasks": {t: {m: cell(a) for m, a in by_model.items()} for t, by_model in runs.items()}}
     if not rob:
         return interim
-    by_cell = {(job.model, job.corruption, job.corruption_std if job.corruption > 0 else None, job.seed):
-               accuracy(job) for job in rob}
+    by_cell = {(job.model, job.corruption, _noise_std(job.corruption, job.corruption_std), job.seed): accuracy(job)
+               for job in rob}
     models = list(cfg.robustness_models)
     levels = []
     for std in cfg.corruption_stds:
         def acc(m: str, p: float, seed: int, std: float = std) -> float | None:
-            return by_cell[(m, float(p), std if p > 0 else None, seed)]
+            return by_cell[(m, float(p), _noise_std(p, std), seed)]
 
         seeds = [s for s in cfg.seeds if all(acc(m, p, s) is not None for m in models for p in cfg.corruption_ratios)]
         level: dict[str, Any] = {"corruption_std": std, "curves": {
