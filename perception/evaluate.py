@@ -342,6 +342,13 @@ def _job_names(ctx: _Context, job: _TrainJob) -> tuple[str, ...]:
     return _class_names(records, job.task) if job.class_names is None else tuple(job.class_names)
 
 
+def _job_classes(ctx: _Context, job: _TrainJob) -> np.ndarray:
+    """Class index (into :func:`_job_names`) of every stroke of ``job``'s data set."""
+    records, _, _ = _source(ctx, job.source)
+    names = _job_names(ctx, job)
+    return np.array([names.index(l) for l in labels_of(records, job.task)])
+
+
 def _job_config(ctx: _Context, job: _TrainJob) -> TrainConfig:
     """The training config of ``job``, as :func:`_train_run` builds it."""
     std = _noise_std(job.corruption, job.corruption_std)
@@ -397,9 +404,8 @@ def _test_noise(job: _TrainJob) -> dict[str, Any]:
 def _train_and_score(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     """Train ``job``'s run (or reuse its finished folder) and score it: the run store's outcome of it (training
     summary, test predictions by test condition, optionally the test embeddings)."""
-    records, features, _ = _source(ctx, job.source)
-    names = _job_names(ctx, job)
-    y = np.array([names.index(l) for l in labels_of(records, job.task)])
+    _, features, _ = _source(ctx, job.source)
+    y = _job_classes(ctx, job)
     test_idx = job.split[1]
     if job.parent is not None:
         # finished in its folder: reused at once; unfinished or stale: resumed or trained afresh; gone (its
@@ -463,10 +469,9 @@ def _run(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     key = job.cache_key()
     if key in ctx.cache:
         return ctx.cache[key]
-    records, features, summaries = _source(ctx, job.source)
-    labels = labels_of(records, job.task)
+    _, features, summaries = _source(ctx, job.source)
     names = _job_names(ctx, job)
-    y = np.array([names.index(l) for l in labels])
+    y = _job_classes(ctx, job)
     train_idx, test_idx = job.split
     std = _noise_std(job.corruption, job.corruption_std)
     result: dict[str, Any] = {"model": job.model, "task": job.task, "split": job.split_name, "seed": job.seed,
@@ -476,7 +481,7 @@ def _run(ctx: _Context, job: _TrainJob) -> dict[str, Any]:
     emb = None
     if job.model == "reference":
         clf = ReferenceClassifier(ReferenceConfig(label="instance" if job.task == "fine" else "category"))
-        clf.pipeline.fit(summaries[train_idx], [labels[i] for i in train_idx])
+        clf.pipeline.fit(summaries[train_idx], [names[i] for i in y[train_idx]])
 
         def classify(x: np.ndarray) -> np.ndarray:  # class indices of the summaries x
             return np.array([names.index(str(p)) for p in clf.pipeline.predict(x)])
@@ -861,9 +866,7 @@ def _stored_accuracy(ctx: _Context, job: _TrainJob, outcomes: Mapping[str, Mappi
     outcome = outcomes.get(_outcome_id(ctx, job))
     if outcome is None:
         return None
-    records, _, _ = _source(ctx, job.source)
-    names = _job_names(ctx, job)
-    y_test = np.array([names.index(l) for l in labels_of(records, job.task)])[job.split[1]]
+    y_test = _job_classes(ctx, job)[job.split[1]]
     return float(np.mean(np.asarray(outcome["pred"]["none"], dtype=np.int64) == y_test))
 
 
