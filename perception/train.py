@@ -45,8 +45,10 @@ from perception.checkpoint import (WEIGHTS_FILE, config_from_dict, config_to_dic
 from perception.dataset import TASKS, labels_of, sha256_file
 from perception.features import (FeatureBatch, FeatureConfig, NormStats, StrokeFeatures, collate, feature_dims,
                                  featurize, fit_norm_stats, frame_clock_s, keep_modalities, normalize)
-from perception.losses import total_loss, unimodal_cross_entropy
+from perception import sam
+from perception.losses import LossTerms, total_loss, unimodal_cross_entropy
 from perception.streams import MODALITIES, StrokeRecord
+from perception.touchformer import ModelOutput
 
 RESUME_DIR = "resume"
 CHECKPOINT_DIR = "checkpoint"
@@ -60,7 +62,7 @@ PLACEMENT_FIELDS = ("device", "num_threads")
 # TrainConfig fields added after runs were stored, left out of a run's identity at the value those runs trained
 # with, so that adding a field does not make every stored run stale
 TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0, "mixup_alpha": 0.0,
-                                         "aux_parameters_weight": 0.0}
+                                         "aux_parameters_weight": 0.0, "sam_rho": 0.0}
 # The same for fields added to a front end's config (each of feature_config's spectral front ends)
 SPECTRAL_IDENTITY_OMITS: dict[str, Any] = {"channel_groups": ()}
 
@@ -181,6 +183,9 @@ class TrainConfig:
             (``aux_targets_train`` of :func:`train`, z-scored on the training strokes). The parameters are
             privileged information, known in simulation and not in real recordings; the head is dropped after
             training, so the checkpoint and inference are the model's own. 0 disables it.
+        sam_rho: sharpness-aware minimisation (:mod:`perception.sam`): each step takes the gradient at the
+            weights moved by this l2 distance up the batch's gradient, so training seeks flat minima (two forward
+            and backward passes a step). 0 disables it (the paper's plain AdamW step).
         init_checkpoint: checkpoint folder to fine-tune from ("" trains from scratch); its norm stats and
             class names are kept.
         feature_config: the front end.
@@ -214,6 +219,7 @@ class TrainConfig:
     feature_mask: float = 0.0
     mixup_alpha: float = 0.0
     aux_parameters_weight: float = 0.0
+    sam_rho: float = 0.0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -265,6 +271,8 @@ class TrainConfig:
         if self.aux_parameters_weight > 0 and self.mixup_alpha > 0:
             raise ValueError("aux_parameters_weight and mixup_alpha cannot both be on: a mixed stroke has no one "
                              "object's parameters")
+        if not (self.sam_rho >= 0.0 and math.isfinite(self.sam_rho)):
+            raise ValueError(f"sam_rho must be a finite number >= 0, got {self.sam_rho}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
         if not math.isfinite(self.corruption_std):
@@ -802,6 +810,28 @@ def _aux_parameter_head(config: TrainConfig, model_config: Any, targets: np.ndar
     return nn.Linear(emb_dim, targets.shape[1]), torch.as_tensor(z, dtype=torch.float32)
 
 
+def _batch_loss(model: nn.Module, model_config: Any, config: TrainConfig, batch: FeatureBatch, mixed: MixedBatch,
+                aux_head: nn.Module | None, aux_rows: torch.Tensor | None
+                ) -> tuple[ModelOutput, LossTerms, torch.Tensor, torch.Tensor | None]:
+    """One training batch's forward pass and loss: the model's output, eq. 14's loss terms, the loss trained on
+    (with the auxiliary parameter and per-modality terms where they are on) and the parameter MSE (None
+    without ``aux_head``)."""
+    out, unimodal = (model.forward_with_unimodal(batch) if getattr(model, "unimodal_heads", None) is not None
+                     else (model(batch), None))
+    terms = total_loss(out.logits, out.embedding, batch.labels, model_config.cer_lambda, model_config.cer_tau,
+                       label_smoothing=config.label_smoothing, partner_labels=mixed.partner_labels.to(batch.labels.device),
+                       share=mixed.share)
+    loss = terms.total
+    aux = None
+    if aux_head is not None:
+        aux = nn.functional.mse_loss(aux_head(out.embedding), aux_rows)
+        loss = loss + config.aux_parameters_weight * aux
+    if unimodal is not None:
+        loss = loss + model_config.unimodal_lambda * unimodal_cross_entropy(unimodal, batch.labels,
+                                                                            batch.present_matrix())
+    return out, terms, loss, aux
+
+
 def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRecord], config: TrainConfig,
           out_dir: str | os.PathLike, progress: bool = True, *, class_names: Sequence[str] | None = None,
           features_train: Sequence[StrokeFeatures] | None = None,
@@ -946,21 +976,17 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
             batch = corrupt_batch(batch, config.corruption_ratio, config.corruption_std, gen)
             mixed = mixup_batch(batch, config.mixup_alpha, gen)
             batch = mixed.batch.to(device)
-            out, unimodal = (model.forward_with_unimodal(batch) if getattr(model, "unimodal_heads", None) is not None
-                             else (model(batch), None))
-            terms = total_loss(out.logits, out.embedding, batch.labels, model_config.cer_lambda, model_config.cer_tau,
-                               label_smoothing=config.label_smoothing, partner_labels=mixed.partner_labels.to(device),
-                               share=mixed.share)
-            loss = terms.total
-            if aux_head is not None:
-                aux = nn.functional.mse_loss(aux_head(out.embedding), aux_targets[torch.as_tensor(idx, device=device)])
-                loss = loss + config.aux_parameters_weight * aux
+            aux_rows = None if aux_head is None else aux_targets[torch.as_tensor(idx, device=device)]
+            out, terms, loss, aux = _batch_loss(model, model_config, config, batch, mixed, aux_head, aux_rows)
+            if aux is not None:
                 sums["aux"] += float(aux.detach()) * len(idx)
-            if unimodal is not None:
-                loss = loss + model_config.unimodal_lambda * unimodal_cross_entropy(unimodal, batch.labels,
-                                                                                    batch.present_matrix())
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            if config.sam_rho > 0:  # SAM: the gradient at the ascent point, applied from the weights themselves
+                steps = sam.ascend(trained, config.sam_rho)
+                optimizer.zero_grad(set_to_none=True)
+                _batch_loss(model, model_config, config, batch, mixed, aux_head, aux_rows)[2].backward()
+                sam.descend_back(trained, steps)
             if config.grad_clip > 0:
                 nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
             optimizer.step()

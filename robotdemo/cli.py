@@ -97,7 +97,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          modality_dropout=args.modality_dropout, train_fraction=args.train_fraction,
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
                          time_crop=args.time_crop, ema_decay=args.ema_decay, feature_mask=args.feature_mask,
-                         mixup_alpha=args.mixup, aux_parameters_weight=args.aux_parameters,
+                         mixup_alpha=args.mixup, aux_parameters_weight=args.aux_parameters, sam_rho=args.sam_rho,
                          corruption_ratio=args.corruption_ratio,
                          corruption_std=args.corruption_std,
                          model_overrides=overrides,
@@ -387,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--mixup", type=float, default=0.0, metavar="ALPHA",
                        help="training: mixup, each batch blended with a shuffled copy of itself at a Beta(ALPHA, "
                             "ALPHA) weight, labels blended alike (default 0: off)")
+    train.add_argument("--sam-rho", type=float, default=0.0, metavar="RHO",
+                       help="training, not the paper's: sharpness-aware minimisation, each step's gradient taken at "
+                            "the weights moved RHO up the batch's gradient (default 0: off, plain AdamW)")
     train.add_argument("--corruption-ratio", type=float, default=0.0, metavar="P",
                        help="robustness experiment: each modality of each stroke gets N(0, STD^2) noise (training "
                             "std units) with probability P, in training, validation and test (default 0)")

@@ -139,6 +139,26 @@ def test_weight_average_is_validated_kept_and_resumed(toy, tmp_path):
         TrainConfig(ema_decay=1.0)
 
 
+def test_sharpness_aware_steps_learn_resume_exactly_and_name_the_run(toy, tmp_path):
+    plain = _fit(toy, _config(epochs=3), tmp_path / "plain")
+    config = _config(sam_rho=0.05)
+    full = _fit(toy, config, tmp_path / "sam")
+    assert full.history[-1]["train_loss"] < full.history[0]["train_loss"]
+    assert _test_accuracy(toy, full.checkpoint_dir) >= 0.6  # chance is 1/3
+    assert [r["train_loss"] for r in full.history[:3]] != [r["train_loss"] for r in plain.history]  # it steps otherwise
+    resumed = _stopped_after_two_epochs_then_resumed(toy, config, tmp_path / "cut")
+    a = safetensors.torch.load_file(str(tmp_path / "sam" / "resume" / "state.safetensors"))
+    b = safetensors.torch.load_file(str(tmp_path / "cut" / "resume" / "state.safetensors"))
+    assert resumed.resumed_from_epoch == 2 and all(torch.equal(a[k], b[k]) for k in a)
+    # off, it leaves stored runs' identities as they were; on, it is part of what the run is
+    assert "sam_rho" not in run_identity(_config(), 3)["config"]
+    assert run_identity(config, 3)["config"]["sam_rho"] == 0.05
+    with pytest.raises(TrainError, match="another config"):
+        _fit(toy, _config(epochs=3, sam_rho=0.1), tmp_path / "plain")
+    with pytest.raises(ValueError, match="sam_rho"):
+        TrainConfig(sam_rho=-0.1)
+
+
 def test_run_folder_resumes_whatever_its_device_and_thread_count(toy, tmp_path):
     config = _config(epochs=2)
     first = _fit(toy, config, tmp_path / "run")
