@@ -62,7 +62,7 @@ PLACEMENT_FIELDS = ("device", "num_threads")
 # TrainConfig fields added after runs were stored, left out of a run's identity at the value those runs trained
 # with, so that adding a field does not make every stored run stale
 TRAIN_IDENTITY_OMITS: dict[str, Any] = {"ema_decay": 0.0, "feature_mask": 0.0, "mixup_alpha": 0.0,
-                                         "aux_parameters_weight": 0.0, "sam_rho": 0.0}
+                                         "aux_parameters_weight": 0.0, "sam_rho": 0.0, "batch_per_class": 0}
 # The same for fields added to a front end's config (each of feature_config's spectral front ends)
 SPECTRAL_IDENTITY_OMITS: dict[str, Any] = {"channel_groups": ()}
 
@@ -186,6 +186,11 @@ class TrainConfig:
         sam_rho: sharpness-aware minimisation (:mod:`perception.sam`): each step takes the gradient at the
             weights moved by this l2 distance up the batch's gradient, so training seeks flat minima (two forward
             and backward passes a step). 0 disables it (the paper's plain AdamW step).
+        batch_per_class: training only, not the paper's: each batch is drawn as ``batch_size // batch_per_class``
+            chunks of ``batch_per_class`` strokes of one label each (P x K sampling, :func:`class_balanced_batches`),
+            so that every anchor of CER's contrastive loss has positives in its batch. With plain batches of 32 and
+            the fine-grained task's 42 instances, about half the anchors have none and add nothing to the loss.
+            Every stroke is still seen once per epoch. 0 (the default) draws batches without regard to labels.
         init_checkpoint: checkpoint folder to fine-tune from ("" trains from scratch); its norm stats and
             class names are kept.
         feature_config: the front end.
@@ -220,6 +225,7 @@ class TrainConfig:
     mixup_alpha: float = 0.0
     aux_parameters_weight: float = 0.0
     sam_rho: float = 0.0
+    batch_per_class: int = 0
     model_overrides: tuple[tuple[str, Any], ...] = ()
     init_checkpoint: str = ""
     feature_config: FeatureConfig = field(default_factory=FeatureConfig)
@@ -273,6 +279,9 @@ class TrainConfig:
                              "object's parameters")
         if not (self.sam_rho >= 0.0 and math.isfinite(self.sam_rho)):
             raise ValueError(f"sam_rho must be a finite number >= 0, got {self.sam_rho}")
+        if not (isinstance(self.batch_per_class, int) and 0 <= self.batch_per_class <= self.batch_size):
+            raise ValueError(f"batch_per_class must be a whole number in [0, batch_size {self.batch_size}], "
+                             f"got {self.batch_per_class!r}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise ValueError(f"ema_decay must lie in [0, 1), got {self.ema_decay}")
         if not math.isfinite(self.corruption_std):
@@ -577,6 +586,37 @@ def length_grouped_batches(order: np.ndarray, lengths: np.ndarray, batch_size: i
         batches += [chunk[i:i + batch_size] for i in range(0, len(chunk), batch_size)]
     perm = torch.randperm(len(batches), generator=generator).numpy()
     return [batches[i] for i in perm]
+
+
+def class_balanced_batches(order: np.ndarray, labels: np.ndarray, batch_size: int, per_class: int,
+                           generator: torch.Generator, lengths: np.ndarray | None = None,
+                           pool_batches: int = 8) -> list[np.ndarray]:
+    """P x K mini-batches: each label's strokes, in the shuffled ``order``, are cut into chunks of ``per_class``
+    (the last one of a label may be shorter), the chunks are shuffled with ``generator`` and ``batch_size //
+    per_class`` chunks make a batch, so a stroke has up to ``per_class - 1`` strokes of its own label beside it.
+    Every stroke appears once; the number of batches depends on the labels only (:func:`class_balanced_steps`).
+    With ``lengths`` the chunks are also grouped by length, as :func:`length_grouped_batches` groups strokes:
+    pools of ``pool_batches`` batches' chunks are sorted by their longest stroke and the batches shuffled."""
+    chunks = []
+    for label in np.unique(labels):
+        members = order[labels[order] == label]  # (n_label,) in the shuffled order
+        chunks += [members[i:i + per_class] for i in range(0, len(members), per_class)]
+    chunks = [chunks[i] for i in torch.randperm(len(chunks), generator=generator).numpy()]
+    per_batch = max(1, batch_size // per_class)
+    if lengths is not None:
+        pool = per_batch * pool_batches
+        chunks = [chunk for start in range(0, len(chunks), pool)
+                  for chunk in sorted(chunks[start:start + pool], key=lambda c: -int(lengths[c].max()))]
+    batches = [np.concatenate(chunks[i:i + per_batch]) for i in range(0, len(chunks), per_batch)]
+    if lengths is not None:
+        batches = [batches[i] for i in torch.randperm(len(batches), generator=generator).numpy()]
+    return batches
+
+
+def class_balanced_steps(labels: np.ndarray, batch_size: int, per_class: int) -> int:
+    """How many batches :func:`class_balanced_batches` makes of strokes with these labels."""
+    chunks = sum(math.ceil(count / per_class) for count in np.unique(labels, return_counts=True)[1])
+    return math.ceil(chunks / max(1, batch_size // per_class))
 
 
 def cosine_lr(base_lr: float, step: int, total_steps: int) -> float:
@@ -921,7 +961,8 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
     n = len(norm_train)
     if n == 0:
         raise TrainError("no training strokes")
-    steps_per_epoch = max(1, math.ceil(n / config.batch_size))
+    steps_per_epoch = max(1, math.ceil(n / config.batch_size) if config.batch_per_class == 0
+                          else class_balanced_steps(y_train, config.batch_size, config.batch_per_class))
     lengths = np.array([sum(0 if f.get(m) is None else len(f[m]) for m in MODALITIES) for f in norm_train])
     identity = {"config": _trained_config(config), "class_names": list(names), "n_train": n, "n_val": len(norm_val),
                 "data_sha256": f"{strokes_fingerprint(records_train)}:{strokes_fingerprint(records_val)}",
@@ -957,8 +998,13 @@ def train(records_train: Sequence[StrokeRecord], records_val: Sequence[StrokeRec
         torch.manual_seed(config.seed * 1_000_003 + epoch)  # dropout
         gen = torch.Generator().manual_seed(config.seed * 1_000_003 + epoch)  # order and noise
         order = torch.randperm(n, generator=gen).numpy()
-        batches = (length_grouped_batches(order, lengths, config.batch_size, gen) if config.group_by_length
-                   else [order[b * config.batch_size:(b + 1) * config.batch_size] for b in range(steps_per_epoch)])
+        if config.batch_per_class > 0:
+            batches = class_balanced_batches(order, y_train, config.batch_size, config.batch_per_class, gen,
+                                             lengths if config.group_by_length else None)
+        elif config.group_by_length:
+            batches = length_grouped_batches(order, lengths, config.batch_size, gen)
+        else:
+            batches = [order[b * config.batch_size:(b + 1) * config.batch_size] for b in range(steps_per_epoch)]
         model.train()
         sums = {"loss": 0.0, "ce": 0.0, "contrastive": 0.0, "correct": 0.0, "aux": 0.0}
         for b, idx in enumerate(batches):

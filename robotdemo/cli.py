@@ -98,6 +98,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          warmup_epochs=args.warmup_epochs, label_smoothing=args.label_smoothing,
                          time_crop=args.time_crop, ema_decay=args.ema_decay, feature_mask=args.feature_mask,
                          mixup_alpha=args.mixup, aux_parameters_weight=args.aux_parameters, sam_rho=args.sam_rho,
+                         batch_per_class=args.batch_per_class,
                          corruption_ratio=args.corruption_ratio,
                          corruption_std=args.corruption_std,
                          model_overrides=overrides,
@@ -390,6 +391,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--sam-rho", type=float, default=0.0, metavar="RHO",
                        help="training, not the paper's: sharpness-aware minimisation, each step's gradient taken at "
                             "the weights moved RHO up the batch's gradient (default 0: off, plain AdamW)")
+    train.add_argument("--batch-per-class", type=_non_negative_int, default=0, metavar="K",
+                       help="training, not the paper's: batches of BATCH_SIZE / K labels with K strokes each, so that "
+                            "every stroke has positives for CER's contrastive loss (default 0: off)")
     train.add_argument("--corruption-ratio", type=float, default=0.0, metavar="P",
                        help="robustness experiment: each modality of each stroke gets N(0, STD^2) noise (training "
                             "std units) with probability P, in training, validation and test (default 0)")

@@ -15,8 +15,8 @@ from perception.dataset import labels_of, ssmc_split, validation_split, write_da
 from perception.features import FeatureConfig, collate, feature_dims, featurize, frame_clock_s
 from perception.baselines import build_model
 from perception.streams import MODALITIES
-from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError, corrupt_batch,
-                              cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
+from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError,
+                              class_balanced_batches, class_balanced_steps, corrupt_batch, cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
                               mask_features, mixup_batch, model_overrides, predict, run_identity, scheduled_lr,
                               strokes_fingerprint, task_split,
                               train, train_command)
@@ -86,6 +86,15 @@ def _stopped_after_two_epochs_then_resumed(toy, config, out_dir, **kwargs):
     return _fit(toy, config, out_dir, **kwargs)
 
 
+def _resumed_run_ends_as_the_whole(toy, config, whole_dir, cut_dir) -> bool:
+    """Train ``config`` into ``cut_dir`` interrupted after epoch 2 and resumed: whether it resumed at epoch 2 and
+    ends with the resume state of the uninterrupted run in ``whole_dir``, tensor for tensor."""
+    resumed = _stopped_after_two_epochs_then_resumed(toy, config, cut_dir)
+    a = safetensors.torch.load_file(str(whole_dir / "resume" / "state.safetensors"))
+    b = safetensors.torch.load_file(str(cut_dir / "resume" / "state.safetensors"))
+    return resumed.resumed_from_epoch == 2 and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_resume_gives_identical_weights(toy, tmp_path):
     config = _config(epochs=3)
     full = _fit(toy, config, tmp_path / "full")
@@ -146,10 +155,7 @@ def test_sharpness_aware_steps_learn_resume_exactly_and_name_the_run(toy, tmp_pa
     assert full.history[-1]["train_loss"] < full.history[0]["train_loss"]
     assert _test_accuracy(toy, full.checkpoint_dir) >= 0.6  # chance is 1/3
     assert [r["train_loss"] for r in full.history[:3]] != [r["train_loss"] for r in plain.history]  # it steps otherwise
-    resumed = _stopped_after_two_epochs_then_resumed(toy, config, tmp_path / "cut")
-    a = safetensors.torch.load_file(str(tmp_path / "sam" / "resume" / "state.safetensors"))
-    b = safetensors.torch.load_file(str(tmp_path / "cut" / "resume" / "state.safetensors"))
-    assert resumed.resumed_from_epoch == 2 and all(torch.equal(a[k], b[k]) for k in a)
+    assert _resumed_run_ends_as_the_whole(toy, config, tmp_path / "sam", tmp_path / "cut")
     # off, it leaves stored runs' identities as they were; on, it is part of what the run is
     assert "sam_rho" not in run_identity(_config(), 3)["config"]
     assert run_identity(config, 3)["config"]["sam_rho"] == 0.05
@@ -181,6 +187,41 @@ def test_length_grouped_batches_cover_every_stroke_once_with_less_padding():
     assert padded(plain) > 2.0 and padded(batches) < 1.25  # frames computed per real frame (2.15, 1.21)
     again = length_grouped_batches(order, lengths, 32, torch.Generator().manual_seed(2))
     assert all(np.array_equal(a, b) for a, b in zip(batches, again))
+
+
+def test_class_balanced_batches_give_every_stroke_positives_once_per_epoch():
+    rng = np.random.default_rng(0)
+    labels = rng.integers(0, 42, size=756)  # the fine-grained task's shape: 42 labels, about 18 strokes each
+    lengths = rng.lognormal(4.0, 0.5, size=756).astype(int) + 20
+    order = torch.randperm(756, generator=torch.Generator().manual_seed(1)).numpy()
+    plain = [order[i:i + 32] for i in range(0, 756, 32)]
+    for by_length in (None, lengths):
+        batches = class_balanced_batches(order, labels, 32, 4, torch.Generator().manual_seed(2), by_length)
+        assert sorted(np.concatenate(batches).tolist()) == list(range(756))
+        assert len(batches) == class_balanced_steps(labels, 32, 4) and all(len(b) <= 32 for b in batches)
+        # a label met in a batch comes as a chunk: up to 4 strokes, and a stroke lacks company only where its
+        # label has a single stroke left over after cutting it into chunks of 4
+        alone = [i for b in batches for i in b if (labels[b] == labels[i]).sum() == 1]
+        leftover = sum(1 for count in np.bincount(labels) if count % 4 == 1)
+        assert len(alone) <= leftover
+        again = class_balanced_batches(order, labels, 32, 4, torch.Generator().manual_seed(2), by_length)
+        assert all(np.array_equal(a, b) for a, b in zip(batches, again))
+    with_positive = lambda bs: np.mean([(labels[b] == labels[i]).sum() > 1 for b in bs for i in b])  # noqa: E731
+    assert with_positive(plain) < 0.7 and with_positive(batches) > 0.9
+    padded = lambda bs: sum(len(b) * lengths[b].max() for b in bs) / lengths.sum()  # noqa: E731
+    assert padded(batches) < 0.8 * padded(plain)  # grouped by length as well
+
+
+def test_class_balanced_training_learns_resumes_and_names_the_run(toy, tmp_path):
+    config = _config(batch_per_class=4, group_by_length=True)
+    full = _fit(toy, config, tmp_path / "pk")
+    assert _test_accuracy(toy, full.checkpoint_dir) >= 0.6  # chance is 1/3
+    assert _resumed_run_ends_as_the_whole(toy, config, tmp_path / "pk", tmp_path / "cut")
+    assert "batch_per_class" not in run_identity(_config(), 3)["config"]
+    assert run_identity(config, 3)["config"]["batch_per_class"] == 4
+    for bad in (-1, 17, 2.5):
+        with pytest.raises(ValueError, match="batch_per_class"):
+            TrainConfig(batch_size=16, batch_per_class=bad)
 
 
 def test_grouped_training_learns_and_resumes(toy, tmp_path):
