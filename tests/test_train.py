@@ -219,7 +219,7 @@ def test_class_balanced_training_learns_resumes_and_names_the_run(toy, tmp_path)
     assert _resumed_run_ends_as_the_whole(toy, config, tmp_path / "pk", tmp_path / "cut")
     assert "batch_per_class" not in run_identity(_config(), 3)["config"]
     assert run_identity(config, 3)["config"]["batch_per_class"] == 4
-    for bad in (-1, 17, 2.5):
+    for bad in (-1, 17, 2.5, True):
         with pytest.raises(ValueError, match="batch_per_class"):
             TrainConfig(batch_size=16, batch_per_class=bad)
 
