@@ -599,8 +599,9 @@ def class_balanced_batches(order: np.ndarray, labels: np.ndarray, batch_size: in
     With ``lengths`` the chunks are also grouped by length, as :func:`length_grouped_batches` groups strokes:
     pools of ``pool_batches`` batches' chunks are sorted by their longest stroke and the batches shuffled."""
     chunks = []
+    ordered = labels[order]  # (n,) each stroke's label, in the shuffled order
     for label in np.unique(labels):
-        members = order[labels[order] == label]  # (n_label,) in the shuffled order
+        members = order[ordered == label]  # (n_label,) in the shuffled order
         chunks += [members[i:i + per_class] for i in range(0, len(members), per_class)]
     chunks = [chunks[i] for i in torch.randperm(len(chunks), generator=generator).numpy()]
     per_batch = max(1, batch_size // per_class)
