@@ -49,6 +49,10 @@ Choices the paper leaves open, made here:
   by. On synthetic strokes whose class is only the timing of one sensor's event against another's
   (``robotdemo bench timing``, :mod:`perception.timing_control`), the model without it fits its training
   strokes and tests at chance; with it, it learns the task (docs/touchformer-findings.md, session 47).
+- ``inter_modal=False`` (on by default, the paper's) leaves step 3 out: no cross-attention is built and each
+  sensor's stream goes from step 2 straight to its own intra-modal Transformer, so the sensors meet only in
+  eq. 12's concatenation. A diagnostic below the ablation's lowest rung ("fusion only"): what the paper's
+  inter-modal fusion adds on given strokes.
 - Padding: every attention masks padded keys; a query row whose keys are all padded (a missing modality)
   attends to its first step instead, which is harmless because that output is scaled by alpha = 0 or pooled
   with weight 0. Conv1D sees zeros at padded steps, identical to its own zero padding, so outputs at real
@@ -139,6 +143,9 @@ class TouchFormerConfig:
         time_bias: add -s_h |t_a - t_b| to each cross-attention head's logits, t the frames' centre times in
             seconds (``frame_clock_s``) and s_h a learned slope per head and pair (module docstring). Off by
             default (the paper's cross-attention sees the PE only).
+        inter_modal: step 3's inter-modal cross-attention (the paper's). False builds none, and each sensor's
+            gated stream Z_m (``residual_base`` "gated"; Z^[0]_m with "plain") goes straight to step 4, so the
+            sensors meet only in eq. 12's concatenation: a diagnostic of what the fusion adds, not the paper's.
         frame_clock_s: per modality (:data:`MODALITIES` order), (hop between frames, centre of the first frame)
             in seconds, :func:`perception.features.frame_clock_s` of the front ends; needed by ``time_bias``
             (training fills it in), empty otherwise.
@@ -149,7 +156,7 @@ class TouchFormerConfig:
     a checkpoint or run written before ``final_norm`` existed has the closing LayerNorm."""
 
     IDENTITY_OMITS: ClassVar[dict[str, Any]] = {"unimodal_lambda": 0.0, "unimodal_at": "pooled", "time_bias": False,
-                                                "frame_clock_s": ()}
+                                                "frame_clock_s": (), "inter_modal": True}
     """Fields added after the evaluation's runs were stored, with the value that does what those runs did: a run
     identity (:func:`perception.train.run_identity`) leaves such a field out at that value, so the stored runs
     stay the runs the current code would train."""
@@ -180,6 +187,7 @@ class TouchFormerConfig:
     unimodal_lambda: float = 0.0
     unimodal_at: str = "pooled"
     time_bias: bool = False
+    inter_modal: bool = True
     frame_clock_s: tuple[tuple[float, float], ...] = ()
 
     def __post_init__(self) -> None:
@@ -211,6 +219,8 @@ class TouchFormerConfig:
             raise ValueError(f"unimodal_at must be one of {UNIMODAL_AT}, got {self.unimodal_at!r}")
         if self.residual_base not in RESIDUAL_BASES:
             raise ValueError(f"residual_base must be one of {RESIDUAL_BASES}, got {self.residual_base!r}")
+        if self.time_bias and not self.inter_modal:
+            raise ValueError("time_bias acts on the inter-modal cross-attention, which inter_modal=False leaves out")
         if self.time_bias and not (len(self.frame_clock_s) == N_MOD and all(
                 len(c) == 2 and c[0] > 0 and math.isfinite(c[0]) and math.isfinite(c[1]) for c in self.frame_clock_s)):
             raise ValueError(f"time_bias needs frame_clock_s: {N_MOD} (hop_s > 0, first frame centre_s) pairs, "
@@ -518,7 +528,7 @@ class TouchFormer(nn.Module):
         self.gate = ModalityGate(c.d_model, c.gate_hidden, c.gate_pool)
         self.cross = nn.ModuleDict({f"{tgt}_from_{src}": CrossModalAttention(c.d_model, c.n_heads, c.attn_dropout,
                                                                              c.time_bias)
-                                    for tgt in MODALITIES for src in MODALITIES if src != tgt})
+                                    for tgt in MODALITIES for src in MODALITIES if src != tgt and c.inter_modal})
         self.intra = nn.ModuleDict({m: IntraModalTransformer(c.d_model, c.n_heads, c.n_layers, c.dropout,
                                                              c.attn_dropout, c.final_norm)
                                     for m in MODALITIES})
@@ -566,7 +576,7 @@ class TouchFormer(nn.Module):
         for tgt in MODALITIES:
             y = base[tgt]  # (B, T_tgt, d)
             for src in MODALITIES:
-                if src != tgt:
+                if src != tgt and c.inter_modal:
                     gap = None if times is None else (times[tgt][:, None] - times[src][None, :]).abs()  # (T_tgt, T_src)
                     y = y + a[src] * self.cross[f"{tgt}_from_{src}"](z0[tgt], z0[src], valid[src], gap)  # (B, T_tgt, d)
             z_tilde[tgt] = y

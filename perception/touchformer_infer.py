@@ -62,12 +62,14 @@ class FusedTouchFormer(nn.Module):
         super().__init__()
         self.config = c = model.config
         self.reference = model  # front end (convolutions, gate) and heads are used as they are
-        self.eps = model.cross[f"{PAIRS[0][0]}_from_{PAIRS[0][1]}"].ln_target.eps  # the eps all its LayerNorms share
+        norms = [m for m in model.modules() if isinstance(m, nn.LayerNorm)]
+        self.eps = norms[0].eps if norms else 1e-5  # the eps all its LayerNorms share
+        cross: list[CrossModalAttention] = [model.cross[f"{t}_from_{s}"] for t, s in PAIRS] if c.inter_modal else []
         with torch.no_grad():
-            cross: list[CrossModalAttention] = [model.cross[f"{t}_from_{s}"] for t, s in PAIRS]
-            self.q_w, self.q_b = _stack_folded([(m.ln_target, m.attn.q) for m in cross])  # (12, d, d)
-            self.kv_w, self.kv_b = _stack_folded([(m.ln_source, m.attn.kv) for m in cross])  # (12, d, 2d)
-            self.cp_w, self.cp_b = _stack_linear([m.attn.proj for m in cross])  # (12, d, d)
+            if cross:
+                self.q_w, self.q_b = _stack_folded([(m.ln_target, m.attn.q) for m in cross])  # (12, d, d)
+                self.kv_w, self.kv_b = _stack_folded([(m.ln_source, m.attn.kv) for m in cross])  # (12, d, 2d)
+                self.cp_w, self.cp_b = _stack_linear([m.attn.proj for m in cross])  # (12, d, d)
             self.layers = []
             for layer in range(c.n_layers):
                 blocks = [model.intra[m].blocks[layer] for m in MODALITIES]
@@ -123,6 +125,21 @@ class FusedTouchFormer(nn.Module):
         gap = (stacked[self.tgt_index][:, :, None] - stacked[self.src_index][:, None, :]).abs()  # (12, T, T)
         return -self.time_slope[:, :, None, None] * gap[:, None]  # (12, h, T, T)
 
+    def _cross_attend(self, z0: torch.Tensor, key_valid: torch.Tensor, alphas: torch.Tensor, t_max: int
+                      ) -> torch.Tensor:
+        """Step 3 without its residual: z0 (M, B, T, d), key masks (M, B, T), alphas (B, M) -> the sum over
+        sources of each target's cross-attention outputs, each scaled by its source's alpha, (M, B, T, d)."""
+        d, b = self.config.d_model, z0.shape[1]
+        n0 = F.layer_norm(z0, (d,), eps=self.eps).reshape(N_MOD, b * t_max, d)  # (M, B T, d)
+        q = torch.baddbmm(self.q_b, n0[self.tgt_index], self.q_w)  # (12, B T, d)
+        k, v = torch.baddbmm(self.kv_b, n0[self.src_index], self.kv_w).split(d, dim=-1)  # (12, B T, d) each
+        shape = (len(PAIRS), b, t_max, d)
+        y = self._attend(q.reshape(shape), k.reshape(shape), v.reshape(shape), key_valid[self.src_index],
+                         self._time_bias(t_max))
+        y = torch.baddbmm(self.cp_b, y.reshape(len(PAIRS), b * t_max, d), self.cp_w).reshape(shape)  # (12, B, T, d)
+        y = y * alphas.t()[self.src_index][:, :, None, None]  # scaled by the source's alpha
+        return y.reshape(N_MOD, N_MOD - 1, b, t_max, d).sum(dim=1)  # (M, B, T, d)
+
     @torch.no_grad()
     def forward(self, batch: FeatureBatch) -> ModelOutput:
         c, ref = self.config, self.reference
@@ -148,16 +165,8 @@ class FusedTouchFormer(nn.Module):
         key_valid[:, :, 0] |= ~key_valid.any(dim=2)  # a row without valid keys attends to its first step
 
         # 3. inter-modal cross-attention, all 12 (target, source) pairs at once
-        n0 = F.layer_norm(z0, (d,), eps=self.eps).reshape(N_MOD, b * t_max, d)  # (M, B T, d)
-        q = torch.baddbmm(self.q_b, n0[self.tgt_index], self.q_w)  # (12, B T, d)
-        k, v = torch.baddbmm(self.kv_b, n0[self.src_index], self.kv_w).split(d, dim=-1)  # (12, B T, d) each
-        shape = (len(PAIRS), b, t_max, d)
-        y = self._attend(q.reshape(shape), k.reshape(shape), v.reshape(shape), key_valid[self.src_index],
-                         self._time_bias(t_max))
-        y = torch.baddbmm(self.cp_b, y.reshape(len(PAIRS), b * t_max, d), self.cp_w).reshape(shape)  # (12, B, T, d)
-        y = y * alphas.t()[self.src_index][:, :, None, None]  # scaled by the source's alpha
         base = z0 if c.residual_base == "gated" else plain  # what the residual adds to (residual_base)
-        z = base + y.reshape(N_MOD, N_MOD - 1, b, t_max, d).sum(dim=1)  # (M, B, T, d) residual
+        z = self._cross_attend(z0, key_valid, alphas, t_max) + base if c.inter_modal else base  # (M, B, T, d)
 
         # 4. intra-modal self-attention, the four modalities at once
         z = z.reshape(N_MOD, b * t_max, d)

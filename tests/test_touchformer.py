@@ -348,6 +348,28 @@ def test_residual_base_sets_how_much_of_its_own_stream_a_sensor_keeps():
         torch.testing.assert_close(gated(only_sound).logits, plain(only_sound).logits)
 
 
+def test_without_inter_modal_attention_a_sensors_pooled_feature_sees_no_other_sensor():
+    # inter_modal=False leaves step 3 out: no cross-attention is built, and with uniform alphas (no MAG, all
+    # sensors present) each sensor's pooled feature, read by its unimodal head, is a function of its own
+    # stream alone. The control: with step 3 the other sensors' heads move when the sound changes.
+    batch = make_batch(seed=21)
+    torch.manual_seed(21)
+    louder = FeatureBatch(x={**batch.x, "sound": batch.x["sound"] + torch.randn_like(batch.x["sound"])},
+                          padding=batch.padding, labels=batch.labels, present=batch.present)
+    others = [i for i, m in enumerate(MODALITIES) if m != "sound"]
+    for inter_modal in (False, True):
+        torch.manual_seed(9)
+        model = TouchFormer(tiny_config(use_mag=False, unimodal_lambda=1.0, inter_modal=inter_modal)).eval()
+        assert (len(model.cross) == 0) == (not inter_modal)
+        with torch.no_grad():
+            before, after = model.forward_with_unimodal(batch)[1], model.forward_with_unimodal(louder)[1]
+        moved = (after - before)[:, others].abs().max()
+        assert (moved < 1e-6) == (not inter_modal), (inter_modal, float(moved))
+        assert (after - before)[:, MODALITIES.index("sound")].abs().max() > 1e-3
+    with pytest.raises(ValueError, match="inter_modal=False"):
+        tiny_config(inter_modal=False, time_bias=True, frame_clock_s=((0.1, 0.05),) * 4)
+
+
 @pytest.mark.parametrize("use_mag", [True, False])
 def test_model_runs_in_bfloat16(use_mag):
     # the positional embedding and the uniform weights follow the model's dtype instead of forcing float32

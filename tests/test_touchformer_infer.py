@@ -36,6 +36,7 @@ def assert_same_outputs(model: TouchFormer, batch: FeatureBatch) -> None:
                                        {"gate_th": 0.6, "gate_temperature": 0.3}, {"max_pool": True},
                                        {"stem_dilations": (1, 2)}, {"gate_pool": "hidden"}, {"head_mlp": True},
                                        {"final_norm": False}, {"final_norm": True}, {"residual_base": "plain"},
+                                       {"inter_modal": False}, {"inter_modal": False, "residual_base": "plain"},
                                        {"time_bias": True, "frame_clock_s": frame_clock_s(FeatureConfig()),
                                         "n_heads": 4}])
 def test_fused_matches_reference_with_padding_and_missing_modalities(overrides):
