@@ -16,9 +16,9 @@ from perception.features import FeatureConfig, collate, feature_dims, featurize,
 from perception.baselines import build_model
 from perception.streams import MODALITIES
 from perception.train import (TEST_CORRUPTION_SEED_OFFSET, StaleRunError, TrainConfig, TrainError,
-                              class_balanced_batches, class_balanced_steps, corrupt_batch, cosine_lr, crop_in_time, drop_modalities, featurize_records, length_grouped_batches,
-                              mask_features, mixup_batch, model_overrides, predict, run_identity, scheduled_lr,
-                              strokes_fingerprint, task_split,
+                              class_balanced_batches, class_balanced_steps, corrupt_batch, cosine_lr, crop_in_time,
+                              drop_modalities, featurize_records, length_grouped_batches, mask_features, mixup_batch,
+                              model_overrides, predict, run_identity, scheduled_lr, strokes_fingerprint, task_split,
                               train, train_command)
 from tests.test_dataset import make_material_strokes
 
