@@ -209,6 +209,20 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from perception.seed_pairs import compare_arms, format_comparison, parse_pair, plot_comparison
+
+    _output_file(args.json_out, "--json")
+    _output_file(args.png, "--png")
+    result = compare_arms(args.runs, [parse_pair(p) for p in args.pair])
+    if args.json_out:
+        Path(args.json_out).write_text(json.dumps(result, indent=2), encoding="utf-8")
+    if args.png:
+        plot_comparison(args.png, result)
+    print(format_comparison(result))
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "ik":
         from robotdemo.benchmarks.ik_bench import run_ik_benchmark
@@ -460,6 +474,16 @@ def build_parser() -> argparse.ArgumentParser:
                                "(nothing is trained or written)")
     evaluate.add_argument("--quiet", action="store_true")
     evaluate.set_defaults(func=_cmd_evaluate)
+
+    compare = sub.add_parser("compare", help="pair training runs of two recipes by seed and fold: mean difference, "
+                             "95 %% t-interval, paired t-test, runs won and lost")
+    compare.add_argument("runs", help="a folder with one folder per arm, each holding robotdemo train runs "
+                         "(ARM/.../metrics.json)")
+    compare.add_argument("--pair", action="append", default=[], metavar="ARM:AGAINST",
+                         help="compare ARM against AGAINST (repeatable); without it only each arm's mean is shown")
+    compare.add_argument("--json", dest="json_out", default=None, metavar="FILE.json", help="write the figures here")
+    compare.add_argument("--png", default=None, metavar="FILE.png", help="plot each pair's per-run differences")
+    compare.set_defaults(func=_cmd_compare)
 
     bench = sub.add_parser("bench", help="benchmarks that print medians and ratios against a peer")
     bench.add_argument("what", choices=["ik", "trajectory", "stroke", "emulation", "inference", "demo", "reference",
