@@ -97,11 +97,6 @@ class SeedPairedDifference:
         return {**asdict(self), "ci95_points": list(self.ci95_points),
                 "differences_points": list(self.differences_points)}
 
-    def line(self) -> str:
-        lo, hi = self.ci95_points
-        return (f"{self.metric} {self.mean_points:+.1f} ({lo:+.1f} to {hi:+.1f}, p {self.p_value:.2g}, "
-                f"{self.won}-{self.lost})")
-
 
 def _read_run(arm: str, path: Path) -> RunScore:
     try:
@@ -219,8 +214,8 @@ def format_comparison(result: dict[str, Any]) -> str:
         lines.append(f"{arm}: {s['runs']} runs, val {s['val']['mean']:.1f} ± {s['val']['std']:.1f} %, "
                      f"test {s['test']['mean']:.1f} ± {s['test']['std']:.1f} %")
     for pair in result["pairs"]:
-        parts = [SeedPairedDifference(**{**pair[m], "ci95_points": tuple(pair[m]["ci95_points"]),
-                                         "differences_points": tuple(pair[m]["differences_points"])}).line()
+        parts = [f"{m} {pair[m]['mean_points']:+.1f} ({pair[m]['ci95_points'][0]:+.1f} to "
+                 f"{pair[m]['ci95_points'][1]:+.1f}, p {pair[m]['p_value']:.2g}, {pair[m]['won']}-{pair[m]['lost']})"
                  for m in METRICS]
         lines.append(f"{pair['arm']} - {pair['against']} ({pair['val']['n_pairs']} pairs): " + "; ".join(parts))
     return "\n".join(lines)
@@ -249,6 +244,7 @@ def plot_comparison(path: str | Path, result: dict[str, Any]) -> Path:
         ax.set_title(f"{metric} accuracy")
         ax.set_xlabel("difference (points)")
         ax.set_yticks(range(len(pairs)), labels)
+        ax.set_ylim(len(pairs) - 0.5, -0.5)  # the first pair on top
     fig.tight_layout()
     out = Path(path)
     fig.savefig(out, dpi=120)
