@@ -47,6 +47,7 @@ from perception.features import (FeatureBatch, FeatureConfig, NormStats, StrokeF
                                  featurize, fit_norm_stats, frame_clock_s, keep_modalities, normalize)
 from perception import sam
 from perception.losses import LossTerms, total_loss, unimodal_cross_entropy
+from perception.sensor_use import presence_matrix, sensor_use
 from perception.streams import MODALITIES, StrokeRecord
 from perception.touchformer import ModelOutput
 
@@ -1125,7 +1126,9 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
     > 0, ``aux_targets_of`` gives the material parameters of the training strokes (one row per stroke).
 
     Returns:
-        {"test_accuracy", "test_g_mean", "n_train", "n_val", "n_test", "best_epoch", "checkpoint_dir", ...}.
+        {"test_accuracy", "test_g_mean", "n_train", "n_val", "n_test", "best_epoch", "checkpoint_dir",
+        "val_sensor_use" (per sensor: the best epoch's mean MAG weight and dropped share on the validation strokes,
+        :func:`perception.sensor_use.sensor_use`), ...}.
     """
     from perception.dataset import load_dataset
     from perception.evaluate import g_mean
@@ -1148,9 +1151,11 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
     # Temperature scaling on the validation strokes: the robot's confidence threshold then means what it says.
     corruption = {"corruption_ratio": config.corruption_ratio, "corruption_std": config.corruption_std,
                   "seed": config.seed + TEST_CORRUPTION_SEED_OFFSET}
-    val_preds = predict(ckpt.model, featurize_records(pick(val_idx), ckpt.feature_config, progress, "featurize val"),
-                        feature_dims(ckpt.feature_config), stats=ckpt.norm_stats, device=resolve_device(config.device),
-                        **corruption)
+    val_feats = featurize_records(pick(val_idx), ckpt.feature_config, progress, "featurize val")
+    val_preds = predict(ckpt.model, val_feats, feature_dims(ckpt.feature_config), stats=ckpt.norm_stats,
+                        device=resolve_device(config.device), **corruption)
+    # How much the best epoch used each sensor on the validation strokes (a sensor the gate shut out shows here).
+    val_use = sensor_use(val_preds.alphas, presence_matrix(val_feats))
     y_val = np.array([names.index(l) for l in labels_of(pick(val_idx), config.task)])
     temperature = fit_temperature(val_preds.logits, y_val)
     set_temperature(result.checkpoint_dir, temperature)
@@ -1166,6 +1171,7 @@ def train_command(data_dir: str | os.PathLike, out_dir: str | os.PathLike, confi
                "best_epoch": result.best_epoch, "best_val_accuracy": result.best_val_accuracy,
                "temperature": temperature, "val_nll": nll(val_preds.logits, y_val),
                "val_nll_calibrated": nll(val_preds.logits, y_val, temperature),
+               "val_sensor_use": {name: use.to_dict() for name, use in val_use.items()},
                "checkpoint_dir": str(result.checkpoint_dir), "data_manifest_sha256": data.manifest_sha256}
     Path(out_dir, "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")
     return metrics
