@@ -26,6 +26,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import stats
 
+from perception.sensor_use import SensorUse, shut_out
+
 METRICS: tuple[str, ...] = ("val", "test")
 """What a pair is compared on: the best epoch's validation accuracy (what a recipe may be chosen on) and the
 test accuracy of that epoch."""
@@ -46,6 +48,9 @@ class RunScore:
         val_accuracy: the best epoch's validation accuracy, in [0, 1].
         test_accuracy: that epoch's test accuracy, in [0, 1].
         data_manifest_sha256: the data set's manifest hash.
+        shut_out: the sensors the gate dropped on more than half of the validation strokes that carry them
+            (:func:`perception.sensor_use.shut_out`); None for a run whose ``metrics.json`` predates
+            ``val_sensor_use``.
     """
 
     arm: str
@@ -56,6 +61,7 @@ class RunScore:
     val_accuracy: float
     test_accuracy: float
     data_manifest_sha256: str
+    shut_out: tuple[str, ...] | None = None
 
     @property
     def key(self) -> tuple[int, int]:
@@ -116,7 +122,20 @@ def _read_run(arm: str, path: Path) -> RunScore:
         scores[metric] = float(value)
     return RunScore(arm=arm, path=path, task=str(record["task"]), seed=int(record["seed"]), fold=int(record["fold"]),
                     val_accuracy=scores["val"], test_accuracy=scores["test"],
-                    data_manifest_sha256=str(record["data_manifest_sha256"]))
+                    data_manifest_sha256=str(record["data_manifest_sha256"]), shut_out=_read_shut_out(path, record))
+
+
+def _read_shut_out(path: Path, record: dict[str, Any]) -> tuple[str, ...] | None:
+    """The sensors ``record``'s ``val_sensor_use`` says the gate shut out; None when the run does not record it."""
+    use = record.get("val_sensor_use")
+    if use is None:
+        return None
+    try:
+        parsed = {str(name): SensorUse(**u) for name, u in use.items()}
+        shut = shut_out(parsed)
+    except (AttributeError, TypeError) as exc:
+        raise ValueError(f"{path}: malformed val_sensor_use ({exc})") from None
+    return tuple(shut)
 
 
 def load_arm_runs(root: str | Path) -> dict[str, dict[tuple[int, int], RunScore]]:
@@ -180,13 +199,18 @@ def seed_paired_difference(runs: dict[str, dict[tuple[int, int], RunScore]], arm
 
 
 def arm_summary(runs: dict[tuple[int, int], RunScore]) -> dict[str, Any]:
-    """Mean and sample std over an arm's runs, in percent, per metric, with its seeds and folds."""
+    """Mean and sample std over an arm's runs, in percent, per metric, with its seeds and folds, and the runs in
+    which the gate shut a sensor out (of those that record their sensor use)."""
     keys = sorted(runs)
     out: dict[str, Any] = {"runs": len(keys), "seeds": sorted({k[0] for k in keys}),
                            "folds": sorted({k[1] for k in keys})}
     for metric in METRICS:
         values = np.array([100.0 * runs[k].accuracy(metric) for k in keys])
         out[metric] = {"mean": float(values.mean()), "std": float(values.std(ddof=1)) if len(values) > 1 else 0.0}
+    recorded = [runs[k] for k in keys if runs[k].shut_out is not None]
+    out["sensor_use_recorded"] = len(recorded)
+    out["sensor_shut_out"] = [{"seed": r.seed, "fold": r.fold, "sensors": list(r.shut_out)}
+                              for r in recorded if r.shut_out]
     return out
 
 
@@ -211,8 +235,15 @@ def format_comparison(result: dict[str, Any]) -> str:
     """The comparison as text: a line per arm, a line per pair."""
     lines = []
     for arm, s in result["arms"].items():
-        lines.append(f"{arm}: {s['runs']} runs, val {s['val']['mean']:.1f} ± {s['val']['std']:.1f} %, "
-                     f"test {s['test']['mean']:.1f} ± {s['test']['std']:.1f} %")
+        line = (f"{arm}: {s['runs']} runs, val {s['val']['mean']:.1f} ± {s['val']['std']:.1f} %, "
+                f"test {s['test']['mean']:.1f} ± {s['test']['std']:.1f} %")
+        if s.get("sensor_use_recorded"):
+            shut = s["sensor_shut_out"]
+            line += f"; a sensor shut out by the gate in {len(shut)} of {s['sensor_use_recorded']} runs"
+            if shut:
+                line += " (" + ", ".join(f"seed {r['seed']} fold {r['fold']}: {'+'.join(r['sensors'])}"
+                                         for r in shut) + ")"
+        lines.append(line)
     for pair in result["pairs"]:
         parts = [f"{m} {pair[m]['mean_points']:+.1f} ({pair[m]['ci95_points'][0]:+.1f} to "
                  f"{pair[m]['ci95_points'][1]:+.1f}, p {pair[m]['p_value']:.2g}, {pair[m]['won']}-{pair[m]['lost']})"

@@ -16,11 +16,13 @@ from tests.test_dataset import make_material_strokes
 MANIFEST = "ab" * 32
 
 
-def _write_run(root, arm, seed, val, test, fold=0, task="ssmc", manifest=MANIFEST, sub=""):
+def _write_run(root, arm, seed, val, test, fold=0, task="ssmc", manifest=MANIFEST, sub="", sensor_use=None):
     folder = root / arm / sub / f"seed{seed}_fold{fold}"
     folder.mkdir(parents=True)
     record = {"task": task, "model": "x", "seed": seed, "fold": fold, "best_val_accuracy": val,
               "test_accuracy": test, "best_epoch": 3, "data_manifest_sha256": manifest}
+    if sensor_use is not None:
+        record["val_sensor_use"] = sensor_use
     (folder / "metrics.json").write_text(json.dumps(record))
     return folder
 
@@ -122,3 +124,35 @@ def test_compare_cli_errors_are_one_line(tmp_path, capsys):
     _write_run(tmp_path, "a", 0, 0.5, 0.5)
     _one_line_error(capsys, main(["compare", str(tmp_path), "--pair", "a"]), "a pair must be ARM:AGAINST")
     _one_line_error(capsys, main(["compare", str(tmp_path), "--json", str(tmp_path)]), "is a folder")
+
+
+def _use(dropped: dict[str, float]) -> dict[str, dict]:
+    return {m: {"n_strokes": 20, "mean_alpha": 0.0 if dropped.get(m, 0.0) == 1.0 else 0.3,
+                "dropped_share": dropped.get(m, 0.0)} for m in ("sound", "normal", "friction", "accel")}
+
+
+def test_the_runs_in_which_the_gate_shut_a_sensor_out_are_counted_per_arm(tmp_path, capsys):
+    _write_run(tmp_path, "stems", 0, 0.43, 0.40, sensor_use=_use({"normal": 1.0, "friction": 0.9}))
+    _write_run(tmp_path, "stems", 1, 0.60, 0.58, sensor_use=_use({"normal": 0.5}))  # half is not shut out
+    _write_run(tmp_path, "stems", 2, 0.59, 0.57, sensor_use=_use({"accel": 0.2}))
+    _write_run(tmp_path, "stems", 3, 0.58, 0.55)  # predates val_sensor_use: not counted either way
+    for seed in range(4):
+        _write_run(tmp_path, "old", seed, 0.55, 0.52)
+    result = compare_arms(tmp_path, [("stems", "old")])
+    stems = result["arms"]["stems"]
+    assert stems["sensor_use_recorded"] == 3
+    assert stems["sensor_shut_out"] == [{"seed": 0, "fold": 0, "sensors": ["normal", "friction"]}]
+    assert result["arms"]["old"]["sensor_use_recorded"] == 0 and result["arms"]["old"]["sensor_shut_out"] == []
+    assert main(["compare", str(tmp_path), "--pair", "stems:old"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].endswith("a sensor shut out by the gate in 1 of 3 runs (seed 0 fold 0: normal+friction)")
+    assert lines[0].startswith("old: 4 runs") and "shut out" not in lines[0]
+
+
+def test_a_malformed_sensor_use_is_refused_in_one_line(tmp_path, capsys):
+    _write_run(tmp_path, "a", 0, 0.5, 0.5, sensor_use={"normal": {"dropped_share": 1.0}})
+    _write_run(tmp_path, "b", 0, 0.5, 0.5, sensor_use=[1, 2])
+    with pytest.raises(ValueError) as info:
+        load_arm_runs(tmp_path)
+    assert "malformed val_sensor_use" in str(info.value) and "metrics.json" in str(info.value)
+    _one_line_error(capsys, main(["compare", str(tmp_path)]), "malformed val_sensor_use")
