@@ -71,6 +71,7 @@ from perception.report import MODEL_LABEL, PAPER, TASK_LABEL, write_report
 from perception.report_plots import (plot_confusion, plot_probes, plot_robustness, plot_training_curves,
                                      plot_tsne)
 from perception.run_store import RunStore, decode_array, encode_array, indices_sha256, outcome_id
+from perception.sensor_use import presence_matrix, sensor_use
 from perception.streams import MODALITIES, StrokeRecord
 from perception.train import (CHECKPOINT_DIR, DEVIATIONS, TEST_CORRUPTION_SEED_OFFSET, TrainConfig, TrainResult,
                              featurize_records, predict, resolve_device, run_identity, train)
@@ -561,12 +562,11 @@ def _single_sensor_experiment(ctx: _Context, all_four: Mapping[str, Sequence[Map
 
 def _modality_weights(alphas: np.ndarray, features: Sequence[Mapping[str, Any]]) -> dict[str, list[float]]:
     """Per modality (:data:`MODALITIES` order): the mean weight alpha over the strokes where it is present, and
-    the share of those strokes on which the gate dropped it (alpha 0)."""
-    present = np.array([[f.get(m) is not None for m in MODALITIES] for f in features], dtype=bool)
-    present = present.reshape(-1, len(MODALITIES))  # (N, M), also for N = 0
-    n = np.maximum(present.sum(axis=0), 1)
-    return {"alpha_mean": ((alphas * present).sum(axis=0) / n).round(4).tolist(),
-            "gate_dropped_share": (((alphas == 0) & present).sum(axis=0) / n).round(4).tolist()}
+    the share of those strokes on which the gate dropped it (alpha 0); 0 for a modality no stroke carries
+    (:func:`perception.sensor_use.sensor_use`, as ``robotdemo train`` records it)."""
+    use = sensor_use(alphas, presence_matrix(features))
+    return {"alpha_mean": np.array([use[m].mean_alpha or 0.0 for m in MODALITIES]).round(4).tolist(),
+            "gate_dropped_share": np.array([use[m].dropped_share or 0.0 for m in MODALITIES]).round(4).tolist()}
 
 
 _POOL_CONTEXT: _Context | None = None
