@@ -26,7 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import stats
 
-from perception.sensor_use import SensorUse, shut_out
+from perception.sensor_use import sensor_use_from_dict, shut_out
 
 METRICS: tuple[str, ...] = ("val", "test")
 """What a pair is compared on: the best epoch's validation accuracy (what a recipe may be chosen on) and the
@@ -131,11 +131,10 @@ def _read_shut_out(path: Path, record: dict[str, Any]) -> tuple[str, ...] | None
     if use is None:
         return None
     try:
-        parsed = {str(name): SensorUse(**u) for name, u in use.items()}
-        shut = shut_out(parsed)
-    except (AttributeError, TypeError) as exc:
+        parsed = sensor_use_from_dict(use)
+    except ValueError as exc:
         raise ValueError(f"{path}: malformed val_sensor_use ({exc})") from None
-    return tuple(shut)
+    return tuple(shut_out(parsed))
 
 
 def load_arm_runs(root: str | Path) -> dict[str, dict[tuple[int, int], RunScore]]:

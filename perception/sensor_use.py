@@ -73,6 +73,26 @@ def sensor_use(alphas: np.ndarray, present: np.ndarray, names: Sequence[str] = M
     return use
 
 
+def sensor_use_from_dict(data: Any) -> dict[str, SensorUse]:
+    """``metrics.json``'s ``val_sensor_use`` ({sensor: :meth:`SensorUse.to_dict`}) back into records.
+
+    Raises:
+        ValueError: ``data`` is not such a mapping, or a record's fields are missing, extra or not numbers.
+    """
+    if not isinstance(data, Mapping):
+        raise ValueError(f"expected a mapping of sensor names to records, got {type(data).__name__}")
+    out = {}
+    for name, record in data.items():
+        try:
+            use = SensorUse(**record)
+        except TypeError as exc:
+            raise ValueError(f"sensor {name!r}: {exc}") from None
+        if not all(v is None or isinstance(v, (int, float)) for v in (use.mean_alpha, use.dropped_share)):
+            raise ValueError(f"sensor {name!r}: mean_alpha and dropped_share must be numbers or null")
+        out[str(name)] = use
+    return out
+
+
 def presence_matrix(features: Sequence[Mapping[str, Any]], names: Sequence[str] = MODALITIES) -> np.ndarray:
     """(N, M) bool: which of ``names`` each featurized stroke carries (a missing sensor is None or absent)."""
     return np.array([[f.get(m) is not None for m in names] for f in features], dtype=bool).reshape(-1, len(names))

@@ -80,7 +80,7 @@ def _cmd_plot_strokes(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from perception.sensor_use import SensorUse, shut_out_warning
+    from perception.sensor_use import sensor_use_from_dict, shut_out_warning
     from perception.train import TrainConfig, train_command
 
     defaults = TrainConfig()
@@ -109,7 +109,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                             progress=not args.quiet,
                             aux_targets_of=_drawn_log_parameters if config.aux_parameters_weight > 0 else None)
     print(json.dumps(metrics, indent=2, default=str))
-    warning = shut_out_warning({name: SensorUse(**use) for name, use in metrics["val_sensor_use"].items()})
+    warning = shut_out_warning(sensor_use_from_dict(metrics["val_sensor_use"]))
     if warning:
         print(warning, file=sys.stderr)
     return 0
